@@ -1,0 +1,39 @@
+# Two set-up commands on a fresh machine: `make demo` and `make test`. Each creates what it
+# needs (a local .venv, the Debian packages for the GUI tests) and works from a clean clone.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+export DSLRXR_DATA ?= $(abspath ../shared/data)
+
+.PHONY: demo test test-core bench system-deps clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip setuptools wheel
+
+$(VENV)/.installed-core: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e .
+	touch $@
+
+$(VENV)/.installed-test: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e '.[test]'
+	touch $@ $(VENV)/.installed-core
+
+system-deps:
+	@bash scripts/install-system-deps.sh
+
+demo: $(VENV)/.installed-core
+	$(BIN)/python -m napari_dslrxr.demo demo_output
+
+test: $(VENV)/.installed-test system-deps
+	$(BIN)/python -m pytest
+
+# Headless core only: no display, no Qt.
+test-core: $(VENV)/.installed-test
+	$(BIN)/python -m pytest -m "not gui" -p no:xvfb
+
+bench: $(VENV)/.installed-test
+	$(BIN)/python benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) demo_output .pytest_cache build *.egg-info src/*.egg-info

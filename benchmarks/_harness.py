@@ -1,0 +1,39 @@
+"""Tiny benchmark helpers: best-of-N wall time, peak memory, and a JSON record per benchmark.
+
+Each ``bench_*.py`` is run in its own process by ``run_all.py`` so its peak resident memory
+is its own.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def best_time(fn: Callable[[], object], repeat: int = 3) -> float:
+    """Best wall time of ``repeat`` calls, in seconds."""
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, in MiB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def record(name: str, values: dict) -> Path:
+    """Write ``results/<name>.json`` and print it."""
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(values, indent=2) + "\n")
+    print(json.dumps({name: values}, indent=2))
+    return path

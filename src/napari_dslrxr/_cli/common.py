@@ -1,0 +1,33 @@
+"""Helpers shared by the sub-command modules."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..core.errors import ParameterError
+
+
+def parse_int_list(text: str, n: int, name: str) -> list[int]:
+    """Parse ``"a,b,c"`` into ``n`` integers or raise a one-line :class:`ParameterError`."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != n:
+        raise ParameterError(f"{name}: expected {n} comma-separated integers, got {text!r}")
+    try:
+        return [int(p) for p in parts]
+    except ValueError:
+        raise ParameterError(f"{name}: expected integers, got {text!r}") from None
+
+
+def parse_roi(text: str | None) -> tuple[int, int, int, int] | None:
+    """Parse ``"r0,c0,r1,c1"`` (pixels, end exclusive) into a tuple, or None."""
+    if text is None:
+        return None
+    r0, c0, r1, c1 = parse_int_list(text, 4, "--roi")
+    if r1 <= r0 or c1 <= c0 or min(r0, c0) < 0:
+        raise ParameterError(f"--roi: need 0 <= r0 < r1 and 0 <= c0 < c1, got {text!r}")
+    return r0, c0, r1, c1
+
+
+def ensure_parent(path: Path) -> None:
+    """Create the output folder if needed (never the file itself)."""
+    path.parent.mkdir(parents=True, exist_ok=True)

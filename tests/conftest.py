@@ -1,0 +1,32 @@
+"""Shared fixtures: the real data folder (skipped with a reason when absent) and seeded RNGs."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def shared_data_dir() -> Path:
+    """The real data folder: $DSLRXR_DATA, default ../shared/data beside the checkout."""
+    env = os.environ.get("DSLRXR_DATA")
+    return Path(env) if env else (REPO_ROOT.parent / "shared" / "data")
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """Path of the third-party real data set; skips the test when it is not there."""
+    folder = shared_data_dir()
+    if not folder.is_dir():
+        pytest.skip(f"real data folder {folder} is absent (set DSLRXR_DATA to run this test)")
+    return folder
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A seeded generator, so synthetic test data are the same on every run."""
+    return np.random.default_rng(20261122)
