@@ -41,9 +41,9 @@ def _root() -> None:
 
 
 def _register_commands() -> None:
-    from ._cli import blur, denoise, pipeline, simulate, view
+    from ._cli import blur, deconvolve, denoise, pipeline, simulate, view
 
-    for module in (denoise, pipeline, blur, simulate, view):
+    for module in (denoise, pipeline, blur, deconvolve, simulate, view):
         module.register(app)
 
 
