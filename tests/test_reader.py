@@ -1,0 +1,159 @@
+"""The napari readers: claims by extension, never raises, reads raw/TIFF/DICOM, bad files notify."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from napari_dslrxr import _reader
+from napari_dslrxr._reader import get_cfa_reader, get_reader, read_cfa_planes, read_radiographs
+from napari_dslrxr.core.io import write_tiff
+
+BLACK_COUNTS = 256
+WHITE_COUNTS = 4095
+
+
+def write_dng(path, mosaic: np.ndarray) -> None:
+    """Write an RGGB 12-bit DNG (black 256, white 4095) from a uint16 Bayer mosaic."""
+    pidng_core = pytest.importorskip("pidng.core")
+    defs = pytest.importorskip("pidng.defs")
+    tag = pidng_core.Tag
+    h, w = mosaic.shape
+    tags = pidng_core.DNGTags()
+    for key, value in [
+        (tag.ImageWidth, w), (tag.ImageLength, h), (tag.TileWidth, w), (tag.TileLength, h),
+        (tag.Orientation, defs.Orientation.Horizontal),
+        (tag.PhotometricInterpretation, defs.PhotometricInterpretation.Color_Filter_Array),
+        (tag.SamplesPerPixel, 1), (tag.BitsPerSample, 12), (tag.CFARepeatPatternDim, [2, 2]),
+        (tag.CFAPattern, defs.CFAPattern.RGGB), (tag.BlackLevel, BLACK_COUNTS),
+        (tag.WhiteLevel, WHITE_COUNTS),
+        (tag.ColorMatrix1, [[1, 1], [0, 1], [0, 1], [0, 1], [1, 1], [0, 1], [0, 1], [0, 1], [1, 1]]),
+        (tag.CalibrationIlluminant1, defs.CalibrationIlluminant.D65),
+        (tag.AsShotNeutral, [[1, 1], [1, 1], [1, 1]]), (tag.Make, "Test"), (tag.Model, "Synthetic"),
+        (tag.DNGVersion, defs.DNGVersion.V1_4), (tag.DNGBackwardVersion, defs.DNGVersion.V1_2),
+    ]:
+        tags.set(key, value)
+    writer = pidng_core.RAW2DNG()
+    writer.options(tags, path="", compress=False)
+    writer.convert(mosaic, filename=str(path.with_suffix("")))
+
+
+@pytest.fixture
+def dng_file(tmp_path, rng):
+    mosaic = (BLACK_COUNTS + rng.integers(0, 3000, (64, 96))).astype(np.uint16)
+    path = tmp_path / "frame.dng"
+    write_dng(path, mosaic)
+    return path, mosaic
+
+
+@pytest.mark.parametrize("name", ["a.CR2", "b.nef", "c.dng", "d.arw", "e.dcm", "f.tif", "g.TIFF"])
+def test_get_reader_claims_radiograph_and_raw_extensions(name):
+    assert get_reader(name) is read_radiographs
+    assert get_reader([name, name]) is read_radiographs
+
+
+@pytest.mark.parametrize("path", ["a.png", "b.txt", "no_extension", "", [], ["a.tif", "b.png"], None, 3, {"a": 1}])
+def test_get_reader_returns_none_when_not_claimed_and_never_raises(path):
+    assert get_reader(path) is None
+
+
+def test_cfa_reader_claims_raw_only():
+    assert get_cfa_reader("x.nef") is read_cfa_planes
+    assert get_cfa_reader("x.tif") is None
+    assert get_cfa_reader(object()) is None
+
+
+def test_raw_opens_as_linear_rgb(tmp_path, rng):
+    signal = rng.integers(100, 1800, (64, 96))
+    write_dng(tmp_path / "once.dng", (BLACK_COUNTS + signal).astype(np.uint16))
+    write_dng(tmp_path / "twice.dng", (BLACK_COUNTS + 2 * signal).astype(np.uint16))
+    (once,) = read_radiographs(str(tmp_path / "once.dng"))
+    (twice,) = read_radiographs([str(tmp_path / "twice.dng")])
+    data, kwargs, layer_type = once
+    assert layer_type == "image" and kwargs["rgb"] is True
+    assert data.shape == (64, 96, 3) and data.dtype == np.uint16
+    assert kwargs["name"] == "once" and kwargs["metadata"]["format"] == "raw"
+    # Linear (gamma 1) and black-subtracted: twice the counts above black gives twice the
+    # value (a gamma-2.2 rendering would give about 1.37 times).
+    ratio = twice[0].astype(float).mean() / data.astype(float).mean()
+    assert ratio == pytest.approx(2.0, rel=0.03)
+
+
+def test_cfa_planes_are_the_mosaic_minus_black_and_overlay_the_rgb(dng_file):
+    path, mosaic = dng_file
+    layers = read_cfa_planes([str(path)])
+    assert [kw["name"] for _, kw, _ in layers] == ["frame R", "frame G1", "frame G2", "frame B"]
+    offsets = {"R": (0, 0), "G1": (0, 1), "G2": (1, 0), "B": (1, 1)}
+    for data, kwargs, layer_type in layers:
+        name = kwargs["metadata"]["cfa_plane"]
+        r, c = offsets[name]
+        assert layer_type == "image" and data.dtype == np.float32 and data.shape == (32, 48)
+        np.testing.assert_array_equal(data, mosaic[r::2, c::2].astype(np.float32) - BLACK_COUNTS)
+        assert kwargs["scale"] == (2.0, 2.0) and kwargs["translate"] == (float(r), float(c))
+        assert kwargs["metadata"]["white_level"] == WHITE_COUNTS
+
+
+def test_tiff_and_dicom_radiographs(tmp_path, rng):
+    pydicom = pytest.importorskip("pydicom")
+    from pydicom.dataset import FileDataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    grey = rng.integers(0, 4000, (40, 50)).astype(np.uint16)
+    tif = write_tiff(tmp_path / "radiograph.tif", grey)
+    ((data, kwargs, kind),) = read_radiographs(str(tif))
+    np.testing.assert_array_equal(data, grey)
+    assert kind == "image" and "rgb" not in kwargs
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1"
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = FileDataset(str(tmp_path / "r.dcm"), {}, file_meta=meta, preamble=b"\0" * 128)
+    ds.Modality = "DX"
+    ds.Rows, ds.Columns = grey.shape
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 12, 11
+    ds.SamplesPerPixel, ds.PixelRepresentation = 1, 0
+    ds.PhotometricInterpretation = "MONOCHROME1"
+    ds.ImagerPixelSpacing = [0.15, 0.2]
+    ds.PixelData = grey.tobytes()
+    ds.save_as(tmp_path / "r.dcm", enforce_file_format=True)
+    assert pydicom.dcmread(tmp_path / "r.dcm").Rows == 40
+    ((data, kwargs, _),) = read_radiographs(str(tmp_path / "r.dcm"))
+    np.testing.assert_array_equal(data, 4095 - grey)  # MONOCHROME1 shown as bright = bright
+    assert kwargs["scale"] == (0.15, 0.2)
+
+
+def test_bad_file_becomes_a_notification_not_an_exception(tmp_path, monkeypatch):
+    shown = []
+    monkeypatch.setattr(_reader, "_notify_error", shown.append)
+    bad = tmp_path / "broken.tif"
+    bad.write_bytes(b"II*\x00" + b"\x00" * 20)
+    good = write_tiff(tmp_path / "good.tif", np.full((16, 16), 7, np.uint16))
+    layers = read_radiographs([str(bad), str(good)])
+    assert [kw["name"] for _, kw, _ in layers] == ["good"]
+    assert len(shown) == 1 and "broken.tif" in shown[0]
+    # Nothing readable: claimed, nothing added (napari's null-layer sentinel), still no raise.
+    assert read_radiographs(str(bad)) == [(None,)]
+    assert read_cfa_planes(str(tmp_path / "missing.nef")) == [(None,)]
+    assert len(shown) == 3
+
+
+@pytest.mark.gui
+def test_viewer_opens_raw_with_either_reader(make_napari_viewer, dng_file):
+    path, _ = dng_file
+    viewer = make_napari_viewer()
+    viewer.open(str(path), plugin="napari-dslrxr.get_reader")
+    assert [layer.name for layer in viewer.layers] == ["frame"] and viewer.layers["frame"].rgb
+    viewer.open(str(path), plugin="napari-dslrxr.get_cfa_reader")
+    assert [layer.name for layer in viewer.layers][1:] == ["frame R", "frame G1", "frame G2", "frame B"]
+    # The planes overlay the RGB: plane pixel (0, 0) of B sits at mosaic pixel (1, 1).
+    assert tuple(viewer.layers["frame B"].data_to_world((0, 0))) == (1.0, 1.0)
+
+
+@pytest.mark.gui
+def test_viewer_survives_a_corrupt_file(make_napari_viewer, tmp_path):
+    bad = tmp_path / "corrupt.dng"
+    bad.write_bytes(b"not a raw file at all" * 10)
+    viewer = make_napari_viewer()
+    viewer.open(str(bad), plugin="napari-dslrxr")
+    assert len(viewer.layers) == 0
