@@ -1,0 +1,1 @@
+"""napari widgets: one module per stage, thin clients of the headless core."""
