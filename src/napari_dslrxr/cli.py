@@ -4,13 +4,16 @@ Each group of sub-commands lives in its own module under ``_cli/`` and registers
 the one Typer app here. :func:`main` turns user mistakes (:class:`DslrxrError`, usage errors)
 into a one-line message on stderr and a non-zero exit code, never a traceback.
 
-Exit codes: 0 success; 1 a batch finished but some files failed; 2 bad input, parameters
-or usage; 130 interrupted.
+Exit codes: 0 success; 1 a batch finished but some files failed; 2 bad input, parameters,
+usage or a refused write; 3 an internal error (a bug: one line, the traceback with
+DSLRXR_DEBUG=1); 130 interrupted.
 """
 
 from __future__ import annotations
 
+import os
 import sys
+import warnings
 
 import typer
 
@@ -24,6 +27,7 @@ from .core.errors import DslrxrError
 EXIT_OK = 0
 EXIT_SOME_FAILED = 1
 EXIT_USAGE = 2
+EXIT_INTERNAL = 3
 EXIT_INTERRUPTED = 130
 
 app = typer.Typer(
@@ -57,6 +61,15 @@ def error_line(message: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit code (the console script exits with it)."""
+    with warnings.catch_warnings():
+        # Library warnings (numpy, tifffile, pydicom) would add lines to the one-line error
+        # contract; DSLRXR_DEBUG=1 shows them.
+        if not os.environ.get("DSLRXR_DEBUG"):
+            warnings.simplefilter("ignore")
+        return _run(argv)
+
+
+def _run(argv: list[str] | None) -> int:
     command = typer.main.get_command(app)
     try:
         result = command.main(args=argv, prog_name="dslrxr", standalone_mode=False)
@@ -80,6 +93,16 @@ def main(argv: list[str] | None = None) -> int:
     except MemoryError:
         error_line("out of memory; try a smaller image or raise the machine's memory")
         return EXIT_USAGE
+    except OSError as exc:  # the file system refused: disk full, permission denied, closed pipe
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        error_line(f"{where}{exc.strerror or exc}")
+        return EXIT_USAGE
+    except Exception as exc:  # a bug: still one line, the traceback only on request
+        if os.environ.get("DSLRXR_DEBUG"):
+            raise
+        error_line(f"internal error ({type(exc).__name__}: {exc}); please report it "
+                   "(set DSLRXR_DEBUG=1 to see the traceback)")
+        return EXIT_INTERNAL
     return result if isinstance(result, int) else EXIT_OK
 
 

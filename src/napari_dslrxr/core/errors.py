@@ -35,6 +35,11 @@ class InputError(DslrxrError):
         self.problem = problem
         super().__init__(problem if source is None else f"{source}: {problem}")
 
+    def __reduce__(self):
+        # Rebuild from (source, problem), so the error survives pickling, e.g. on its way back
+        # from a worker process of a parallel batch.
+        return (type(self), (self.source, self.problem))
+
 
 class ParameterError(DslrxrError):
     """A parameter out of range, of the wrong type, unknown or missing."""

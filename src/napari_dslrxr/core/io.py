@@ -17,16 +17,22 @@ Conventions
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io as _stdio
 import os
+import re
+import secrets
+import sys
 import tempfile
+import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError, OutputError
+from .errors import InputError, OutputError, ParameterError
 
 #: Extensions read through rawpy/LibRaw. Most are TIFF containers, so the extension decides.
 RAW_EXTENSIONS = frozenset(
@@ -47,16 +53,24 @@ _CFA_NAMES = ("R", "G1", "G2", "B")
 
 
 def max_pixels_limit(max_pixels: int | None = None) -> int:
-    """Return the decoded-size limit in pixels per plane (argument, environment, or default)."""
-    if max_pixels is not None:
-        return int(max_pixels)
-    env = os.environ.get("DSLRXR_MAX_PIXELS")
-    if env:
-        try:
-            return int(float(env))
-        except ValueError:
-            raise InputError("DSLRXR_MAX_PIXELS", f"not a number: {env!r}") from None
-    return DEFAULT_MAX_PIXELS
+    """Return the decoded-size limit in pixels per plane (argument, environment, or default).
+
+    Raises
+    ------
+    ParameterError
+        If the limit (argument or ``DSLRXR_MAX_PIXELS``) is not a positive whole number.
+    """
+    source, value = ("max_pixels", max_pixels) if max_pixels is not None else \
+        ("DSLRXR_MAX_PIXELS", os.environ.get("DSLRXR_MAX_PIXELS") or None)
+    if value is None:
+        return DEFAULT_MAX_PIXELS
+    try:
+        limit = int(float(value))
+    except (TypeError, ValueError, OverflowError):
+        raise ParameterError(f"{source}: not a number: {value!r}") from None
+    if limit < 1:
+        raise ParameterError(f"{source}: must be a positive number of pixels, got {value!r}")
+    return limit
 
 
 @dataclass
@@ -174,45 +188,127 @@ def validate_image(data: np.ndarray, source: str | os.PathLike | None = None,
     return arr
 
 
-def _check_declared_size(path: Path, shape: Sequence[int], itemsize: int, limit: int) -> None:
-    pixels = int(np.prod([int(s) for s in shape[:2]], dtype=np.int64)) if len(shape) >= 2 else 0
+def _check_declared_size(path: Path, height: int, width: int, samples: int, itemsize: int,
+                         limit: int) -> None:
+    """Refuse an image from its header, before any pixel buffer is allocated.
+
+    ``height * width`` must not exceed ``limit`` pixels, and the decoded buffer
+    (``height * width * samples * itemsize`` bytes) must not exceed ``16 * limit`` bytes (the
+    size of a limit-sized float32 RGB image plus an alpha plane).
+    """
+    height, width, samples, itemsize = (int(v) for v in (height, width, samples, itemsize))
+    if height <= 0 or width <= 0 or samples <= 0:
+        raise InputError(path, f"empty image (declared size {height}x{width}x{samples})")
+    pixels = height * width
     if pixels > limit:
-        raise InputError(path, f"declared size {tuple(int(s) for s in shape)} exceeds the limit of "
-                               f"{limit} pixels (set DSLRXR_MAX_PIXELS to raise it)")
-    total = int(np.prod([int(s) for s in shape], dtype=np.int64)) * itemsize
-    if total > 8 * limit * 4:
-        raise InputError(path, f"declared size {total} bytes is too large")
+        raise InputError(path, f"declared size {height}x{width} pixels exceeds the limit of {limit} "
+                               "pixels (set DSLRXR_MAX_PIXELS to raise it)")
+    if pixels * samples * itemsize > 16 * limit:
+        raise InputError(path, f"declared size {height}x{width}x{samples} of {itemsize}-byte "
+                               f"samples exceeds the limit of {16 * limit} bytes "
+                               "(set DSLRXR_MAX_PIXELS to raise it)")
+
+
+# --------------------------------------------------------------------------- decoder chatter
+
+
+_QUIET_LOCK = threading.Lock()
+_QUIET_STATE: dict = {"depth": 0}
+
+
+@contextlib.contextmanager
+def _quiet_decoder():
+    """Keep decoder chatter off the terminal and hand it back as text.
+
+    LibRaw prints "Unexpected end of file" to the C ``stderr``; tifffile logs and pydicom
+    warns about damaged files. The command line promises one line per error, so while a
+    decoder runs, file descriptor 2 and ``sys.stderr`` point at a buffer and Python warnings
+    are recorded instead of shown. Nested or concurrent uses share one redirection (counted
+    under a lock), so threads reading files at the same time restore the terminal correctly.
+    The yielded list receives the captured text when the outermost use ends.
+    """
+    captured: list[str] = []
+    with _QUIET_LOCK:
+        outermost = _QUIET_STATE["depth"] == 0
+        if outermost:
+            _QUIET_STATE["stream"] = _stdio.StringIO()
+            _QUIET_STATE["sys_stderr"] = sys.stderr
+            _QUIET_STATE["saved_fd"] = None
+            try:
+                sys.stderr.flush()
+            except (OSError, ValueError, AttributeError):
+                pass
+            try:
+                _QUIET_STATE["tmp"] = tempfile.TemporaryFile()
+                _QUIET_STATE["saved_fd"] = os.dup(2)
+                os.dup2(_QUIET_STATE["tmp"].fileno(), 2)
+            except OSError:  # no fd 2 (e.g. a GUI without a console): nothing to hide
+                _QUIET_STATE["saved_fd"] = None
+            sys.stderr = _QUIET_STATE["stream"]
+        _QUIET_STATE["depth"] += 1
+    try:
+        import warnings
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield captured
+        captured.extend(str(w.message) for w in caught)
+    finally:
+        with _QUIET_LOCK:
+            _QUIET_STATE["depth"] -= 1
+            if _QUIET_STATE["depth"] == 0:
+                sys.stderr = _QUIET_STATE["sys_stderr"]
+                captured.append(_QUIET_STATE["stream"].getvalue())
+                if _QUIET_STATE["saved_fd"] is not None:
+                    os.dup2(_QUIET_STATE["saved_fd"], 2)
+                    os.close(_QUIET_STATE["saved_fd"])
+                    tmp = _QUIET_STATE["tmp"]
+                    tmp.seek(0)
+                    captured.append(tmp.read(4096).decode("utf-8", "replace"))
+                    tmp.close()
+
+
+def _last_line(chatter: list[str]) -> str:
+    """The last non-empty line of captured decoder output, without the file name prefix."""
+    lines = [ln.strip() for text in chatter for ln in str(text).splitlines() if ln.strip()]
+    if not lines:
+        return ""
+    # Drop OpenCV's "[ WARN:0@0.1] global grfmt_png.cpp:793 function" and LibRaw's "file: " prefixes.
+    line = re.sub(r"^\[[^\]]*\]\s*(global\s+\S+:\d+\s+\S+\s+)?", "", lines[-1])
+    return line.split(": ", 1)[1] if ": " in line else line
 
 
 # --------------------------------------------------------------------------- readers
 
 
+_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
 def _sniff(path: Path) -> str:
-    """Return the format of a file from its extension and first bytes."""
+    """Return the format of a file from its first bytes (and its extension for camera raw)."""
     ext = path.suffix.lower()
     try:
+        if path.is_dir():
+            raise InputError(path, "is a folder, not an image file")
         size = path.stat().st_size
+        with open(path, "rb") as fh:
+            head = fh.read(132)
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     except OSError as exc:
-        raise InputError(path, f"cannot open ({exc.strerror or exc})") from None
-    if path.is_dir():
-        raise InputError(path, "is a folder, not an image file")
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
     if size == 0:
         raise InputError(path, "empty file (0 bytes)")
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(132)
-    except OSError as exc:
-        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
     if ext in RAW_EXTENSIONS:
         return "raw"
-    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
-        return "tiff"
-    if head[:8] == b"\x89PNG\r\n\x1a\n":
-        return "png"
+    # DICOM first: a DICOM preamble may itself hold a TIFF header (dual-format files).
     if len(head) >= 132 and head[128:132] == b"DICM":
         return "dicom"
+    if head[:4] in _TIFF_MAGIC:
+        return "tiff"
+    if head[:8] == _PNG_MAGIC:
+        return "png"
     if ext in DICOM_EXTENSIONS:
         return "dicom"  # preamble-less DICOM; pydicom decides
     expected = {**{e: "TIFF" for e in TIFF_EXTENSIONS}, **{e: "PNG" for e in PNG_EXTENSIONS}}.get(ext)
@@ -224,10 +320,10 @@ def _sniff(path: Path) -> str:
 
 def _looks_like_text(head: bytes) -> bool:
     try:
-        head.decode("utf-8")
+        text = head.decode("utf-8")
     except UnicodeDecodeError:
         return False
-    return True
+    return all(ch.isprintable() or ch in "\r\n\t" for ch in text)
 
 
 def read_image(path: str | os.PathLike, *, max_pixels: int | None = None,
@@ -239,7 +335,8 @@ def read_image(path: str | os.PathLike, *, max_pixels: int | None = None,
     path : path-like
         The file. Its format is decided by content (and by extension for camera raw).
     max_pixels : int, optional
-        Refuse images with more pixels per plane than this, before decoding them.
+        Refuse images with more pixels per plane than this, before decoding them (default
+        ``DSLRXR_MAX_PIXELS`` or :data:`DEFAULT_MAX_PIXELS`).
     with_raw_planes : bool
         For raw input, also extract the CFA planes (default True).
 
@@ -268,16 +365,25 @@ def _read_tiff(path: Path, limit: int) -> LoadedImage:
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tif:
+        with _quiet_decoder() as chatter, tifffile.TiffFile(path) as tif:
             if not tif.series:
                 raise InputError(path, "TIFF holds no image")
             series = tif.series[0]
-            _check_declared_size(path, series.shape[-3:] if len(series.shape) > 2 else series.shape,
+            shape, axes = tuple(int(s) for s in series.shape), str(series.axes)
+            if "Y" not in axes or "X" not in axes:
+                raise InputError(path, f"TIFF image has no rows and columns (axes {axes!r})")
+            extra = [(a, n) for a, n in zip(axes, shape, strict=True) if a not in "YXS" and n > 1]
+            if extra:
+                raise InputError(path, f"multi-image TIFF of shape {shape} (axes {axes}) is not a "
+                                       "single radiograph")
+            samples = shape[axes.index("S")] if "S" in axes else 1
+            _check_declared_size(path, shape[axes.index("Y")], shape[axes.index("X")], samples,
                                  np.dtype(series.dtype).itemsize, limit)
             data = series.asarray()
-            meta = {"photometric": str(getattr(series.pages[0], "photometric", "")).split(".")[-1]}
-            desc = series.pages[0].description if series.pages else ""
-            if desc and desc.lstrip().startswith("{"):
+            page = series.pages[0] if series.pages else None
+            meta = {"photometric": getattr(getattr(page, "photometric", None), "name", "")}
+            desc = getattr(page, "description", "") or ""
+            if desc.lstrip().startswith("{"):
                 meta["description"] = desc
     except InputError:
         raise
@@ -285,11 +391,14 @@ def _read_tiff(path: Path, limit: int) -> LoadedImage:
         raise InputError(path, "too large to decode in memory") from None
     except Exception as exc:  # tifffile raises many types for damaged files
         raise InputError(path, f"corrupt or truncated TIFF ({_short(exc)})") from None
-    if data.ndim > 3:
-        data = np.squeeze(data)
-        if data.ndim > 3:
-            raise InputError(path, f"multi-image TIFF of shape {data.shape} is not a single radiograph")
+    data = np.squeeze(data) if data.ndim > 3 else data
+    if chatter and any("truncat" in str(c).lower() for c in chatter):
+        raise InputError(path, f"corrupt or truncated TIFF ({_short(_last_line(chatter))})")
     return LoadedImage(validate_image(data, path), path, "tiff", meta)
+
+
+#: Samples per pixel of each PNG colour type (grey, RGB, palette, grey+alpha, RGBA).
+_PNG_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
 
 
 def _read_png(path: Path, limit: int) -> LoadedImage:
@@ -297,57 +406,82 @@ def _read_png(path: Path, limit: int) -> LoadedImage:
 
     import cv2
 
-    with open(path, "rb") as fh:
-        head = fh.read(33)
-    if len(head) < 24 or head[12:16] != b"IHDR":
-        raise InputError(path, "corrupt PNG (no image header)")
-    width, height = struct.unpack(">II", head[16:24])
-    _check_declared_size(path, (height, width), 8, limit)
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(33)
+            if len(head) < 33 or head[12:16] != b"IHDR":
+                raise InputError(path, "corrupt PNG (no image header)")
+            width, height = struct.unpack(">II", head[16:24])
+            bit_depth, colour_type = head[24], head[25]
+            if colour_type not in _PNG_SAMPLES or bit_depth not in (1, 2, 4, 8, 16):
+                raise InputError(path, f"corrupt PNG (colour type {colour_type}, bit depth {bit_depth})")
+            _check_declared_size(path, height, width, _PNG_SAMPLES[colour_type],
+                                 2 if bit_depth == 16 else 1, limit)
+            fh.seek(0)
+            buffer = np.frombuffer(fh.read(), np.uint8)
+    except OSError as exc:
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    try:
+        with _quiet_decoder() as chatter:
+            data = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise InputError(path, f"corrupt or truncated PNG ({_short(exc)})") from None
     if data is None:
-        raise InputError(path, "corrupt or truncated PNG")
-    if data.ndim == 3:
+        detail = _last_line(chatter)
+        raise InputError(path, "corrupt or truncated PNG" + (f" ({_short(detail)})" if detail else ""))
+    if data.ndim == 3 and data.shape[2] == 2:
+        data = data[..., 0]  # grey + alpha: keep the grey
+    elif data.ndim == 3:
         code = cv2.COLOR_BGRA2RGB if data.shape[2] == 4 else cv2.COLOR_BGR2RGB
         data = cv2.cvtColor(data, code)
-    return LoadedImage(validate_image(data, path), path, "png", {})
+    return LoadedImage(validate_image(data, path), path, "png", {"bit_depth": int(bit_depth)})
 
 
 def _read_dicom(path: Path, limit: int) -> LoadedImage:
     import pydicom
 
     try:
-        ds = pydicom.dcmread(path, force=path.suffix.lower() in DICOM_EXTENSIONS)
-    except Exception as exc:
+        with _quiet_decoder():
+            ds = pydicom.dcmread(path, force=path.suffix.lower() in DICOM_EXTENSIONS)
+            if "PixelData" not in ds:
+                raise InputError(path, "DICOM file holds no pixel data")
+            # pydicom decodes elements lazily, so damaged headers fail here, not in dcmread.
+            rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
+            samples = int(ds.get("SamplesPerPixel", 1) or 1)
+            frames = int(ds.get("NumberOfFrames", 1) or 1)
+            bits_allocated = int(ds.get("BitsAllocated", 16) or 16)
+            if frames > 1:
+                raise InputError(path, f"multi-frame DICOM ({frames} frames) is not a single radiograph")
+            _check_declared_size(path, rows, cols, samples, max(1, bits_allocated // 8), limit)
+            photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip()
+            data = ds.pixel_array
+            bits_stored = int(ds.get("BitsStored", data.dtype.itemsize * 8) or data.dtype.itemsize * 8)
+            spacing = ds.get("ImagerPixelSpacing", None) or ds.get("PixelSpacing", None)
+            modality = str(ds.get("Modality", ""))
+    except InputError:
+        raise
+    except MemoryError:
+        raise InputError(path, "too large to decode in memory") from None
+    except Exception as exc:  # pydicom raises many types for damaged files
         raise InputError(path, f"corrupt DICOM ({_short(exc)})") from None
-    if "PixelData" not in ds:
-        raise InputError(path, "DICOM file holds no pixel data")
-    rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
-    frames = int(ds.get("NumberOfFrames", 1) or 1)
-    if frames > 1:
-        raise InputError(path, f"multi-frame DICOM ({frames} frames) is not a single radiograph")
-    _check_declared_size(path, (rows, cols), max(1, int(ds.get("BitsAllocated", 16) or 16) // 8), limit)
-    try:
-        data = ds.pixel_array
-    except Exception as exc:
-        raise InputError(path, f"cannot decode DICOM pixel data ({_short(exc)})") from None
-    photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2"))
-    bits_stored = int(ds.get("BitsStored", data.dtype.itemsize * 8) or 16)
+    if data.ndim != 2 + (samples > 1):
+        raise InputError(path, f"DICOM pixel data of shape {data.shape} is not a single radiograph")
     if photometric == "MONOCHROME1":
         # Invert within the stored range so that, as in MONOCHROME2, bright means bright.
-        if data.dtype.kind == "u":
+        if data.dtype.kind == "u" and 0 < bits_stored <= data.dtype.itemsize * 8:
             top = (1 << bits_stored) - 1
             data = (top - np.minimum(data, top)).astype(data.dtype)
-        else:
+        elif data.size:
             data = (data.max() + data.min()) - data
-    meta: dict = {"photometric_original": photometric, "bits_stored": bits_stored,
-                  "modality": str(ds.get("Modality", ""))}
-    spacing = ds.get("ImagerPixelSpacing", None) or ds.get("PixelSpacing", None)
+    meta: dict = {"photometric_original": photometric, "bits_stored": bits_stored, "modality": modality}
     if spacing is not None:
         try:
-            meta["pixel_spacing_mm"] = [float(spacing[0]), float(spacing[1])]
+            spacing_mm = [float(spacing[0]), float(spacing[1])]
         except (TypeError, ValueError, IndexError):
-            pass
-    if data.dtype == np.int16 and data.min() >= 0:
+            spacing_mm = []
+        if spacing_mm and all(np.isfinite(v) and v > 0 for v in spacing_mm):
+            meta["pixel_spacing_mm"] = spacing_mm  # a zero spacing means "not known"
+    if data.dtype.kind == "i" and data.size and data.min() >= 0 and data.max() <= 65535:
         data = data.astype(np.uint16)
     return LoadedImage(validate_image(data, path), path, "dicom", meta)
 
@@ -357,11 +491,15 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
     """Read a camera raw file (CR2, NEF, DNG, ARW...) through rawpy/LibRaw.
 
     The black level, white level and CFA pattern are read from the file, never assumed.
+    The size declared in the file is checked against the limit before the pixels are
+    unpacked.
 
     Returns
     -------
     LoadedImage
-        ``data`` is the linear demosaiced RGB (uint16); ``raw`` holds the CFA planes.
+        ``data`` is the linear demosaiced RGB (uint16, camera colour space and white
+        balance, gamma 1, no auto-brightening, scaled so that the white level maps to
+        65535); ``raw`` holds the CFA planes (float32 counts above black).
     """
     path = Path(path)
     limit = max_pixels_limit(max_pixels)
@@ -369,34 +507,48 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
         import rawpy
     except ImportError:  # pragma: no cover - rawpy is a hard dependency
         raise InputError(path, "camera raw needs the 'rawpy' package") from None
-    if path.stat().st_size == 0:
-        raise InputError(path, "empty file (0 bytes)")
     try:
-        with rawpy.imread(str(path)) as raw:
+        if path.stat().st_size == 0:
+            raise InputError(path, "empty file (0 bytes)")
+    except FileNotFoundError:
+        raise InputError(path, "no such file") from None
+    chatter: list[str] = []
+    try:
+        with _quiet_decoder() as chatter, rawpy.imread(str(path)) as raw:
             sizes = raw.sizes
-            _check_declared_size(path, (sizes.raw_height, sizes.raw_width), 2, limit)
-            pattern = np.asarray(raw.raw_pattern)
+            _check_declared_size(path, sizes.raw_height, sizes.raw_width, 1, 2, limit)
+            _check_declared_size(path, sizes.iheight, sizes.iwidth, 3, 2, limit)
             desc = raw.color_desc.decode("ascii", "replace")
-            if pattern is None or pattern.shape != (2, 2) or raw.num_colors < 3:
+            if raw.num_colors < 3 or raw.raw_pattern is None or np.asarray(raw.raw_pattern).shape != (2, 2):
                 raise InputError(path, "not a 2x2 Bayer sensor; only Bayer raw files are supported")
             black = np.asarray(raw.black_level_per_channel, dtype=np.float32)
             white = int(raw.white_level)
             planes = offsets = names = None
             if with_planes:
                 mosaic = np.asarray(raw.raw_image_visible)
-                if mosaic.shape[0] < 2 * MIN_SIDE_PX or mosaic.shape[1] < 2 * MIN_SIDE_PX:
-                    raise InputError(path, f"raw image is {mosaic.shape[0]}x{mosaic.shape[1]} pixels; too small")
+                if mosaic.ndim != 2 or mosaic.shape[0] < 2 * MIN_SIDE_PX or mosaic.shape[1] < 2 * MIN_SIDE_PX:
+                    raise InputError(path, f"raw image of shape {mosaic.shape} is too small or not a mosaic")
+                # The colour of each site of the visible area (LibRaw's raw_pattern refers to
+                # the full sensor, whose margins may shift the cell by a row or column).
+                pattern = np.asarray(raw.raw_colors_visible[:2, :2])
                 h2, w2 = mosaic.shape[0] // 2, mosaic.shape[1] // 2
-                planes, offsets, names, plane_black = _split_cfa(mosaic[: 2 * h2, : 2 * w2], pattern, desc, black)
-                black = plane_black
+                planes, offsets, names, black = _split_cfa(path, mosaic[: 2 * h2, : 2 * w2], pattern, desc, black)
             rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16,
-                                  use_camera_wb=True, user_flip=0)
+                                  use_camera_wb=True, user_flip=0,
+                                  output_color=rawpy.ColorSpace.raw,
+                                  # Scale by the file's white level, never by the data
+                                  # maximum (LibRaw's default 0.75 would make the scale
+                                  # depend on the content and break linearity across frames).
+                                  adjust_maximum_thr=0.0)
     except InputError:
         raise
     except MemoryError:
         raise InputError(path, "too large to decode in memory") from None
     except Exception as exc:  # rawpy.LibRawError and friends
-        raise InputError(path, f"unreadable camera raw file ({_short(exc)})") from None
+        detail = _last_line(chatter) or _short(exc)
+        raise InputError(path, f"unreadable camera raw file ({_short(detail)})") from None
+    if white <= float(np.max(black)):
+        raise InputError(path, f"white level {white} is not above the black level {float(np.max(black))}")
     frame = None
     if with_planes:
         frame = RawFrame(planes, names, offsets, black, white, rgb, {})
@@ -404,22 +556,27 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
     return LoadedImage(validate_image(rgb, path), path, "raw", meta, frame)
 
 
-def _split_cfa(mosaic: np.ndarray, pattern: np.ndarray, desc: str, black_per_channel: np.ndarray):
-    """Split a Bayer mosaic into R, G1, G2, B planes (float32, black subtracted)."""
-    colours = [desc[int(pattern[r, c])] for r in range(2) for c in range(2)]
-    positions = [(r, c) for r in range(2) for c in range(2)]
-    by_name: dict[str, tuple[int, int, int]] = {}
-    greens = 0
-    for (r, c), colour in zip(positions, colours, strict=True):
-        idx = int(pattern[r, c])
-        if colour == "G":
-            greens += 1
-            name = f"G{greens}"
-        else:
-            name = colour
-        by_name[name] = (r, c, idx)
-    if set(by_name) != set(_CFA_NAMES):
-        raise ValueError(f"unsupported CFA pattern {''.join(colours)}")
+def _split_cfa(path: Path, mosaic: np.ndarray, pattern: np.ndarray, desc: str,
+               black_per_channel: np.ndarray):
+    """Split a Bayer mosaic into R, G1, G2, B planes (float32, black subtracted).
+
+    ``pattern`` gives the colour index (into ``desc``) of the top-left 2x2 cell of the
+    visible mosaic.
+    """
+    sites = {}
+    for r in range(2):
+        for c in range(2):
+            idx = int(pattern[r, c])
+            colour = desc[idx] if 0 <= idx < len(desc) else "?"
+            sites.setdefault(colour, []).append((r, c, idx))
+    if sorted(sites) != ["B", "G", "R"] or len(sites["G"]) != 2:
+        cell = "".join(desc[int(i)] if 0 <= int(i) < len(desc) else "?" for i in pattern.ravel())
+        raise InputError(path, f"unsupported CFA pattern {cell}; expected a Bayer RGGB-type cell")
+    # LibRaw numbers the second green of the cell 3 (desc "RGBG"); when both greens share
+    # one index (three-colour description), G1 is the green in the row of red.
+    red_row = sites["R"][0][0]
+    g1, g2 = sorted(sites["G"], key=lambda site: (site[2], site[0] != red_row))
+    by_name = {"R": sites["R"][0], "G1": g1, "G2": g2, "B": sites["B"][0]}
     planes = np.empty((4, mosaic.shape[0] // 2, mosaic.shape[1] // 2), np.float32)
     offsets, black = [], []
     for i, name in enumerate(_CFA_NAMES):
@@ -431,8 +588,12 @@ def _split_cfa(mosaic: np.ndarray, pattern: np.ndarray, desc: str, black_per_cha
     return planes, tuple(offsets), _CFA_NAMES, np.asarray(black, np.float32)
 
 
-def _short(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) or type(exc).__name__
+def _short(exc: BaseException | str) -> str:
+    """A one-line, at most 120-character description of an exception (bytes decoded)."""
+    text = exc.args[0] if isinstance(exc, BaseException) and len(exc.args) == 1 else exc
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", "replace")
+    text = " ".join(str(text).split()) or type(exc).__name__
     return text if len(text) <= 120 else text[:117] + "..."
 
 
@@ -467,28 +628,57 @@ def check_not_an_input(out_path: str | os.PathLike, inputs: Iterable[str | os.Pa
 def atomic_write(path: str | os.PathLike, writer, *, inputs: Iterable[str | os.PathLike] = ()) -> Path:
     """Write a file atomically: ``writer(tmp_path)`` then rename onto ``path``.
 
-    The temporary file lives in the destination folder (same file system) and is removed if
-    ``writer`` fails or the process is interrupted before the rename.
+    The temporary file (``.<name>.<random>.part``) lives in the destination folder, so the
+    rename is atomic on the same file system; it is created with the usual permissions
+    (``0o666`` less the umask), flushed to disk before the rename, and removed if
+    ``writer`` fails. A process killed before the rename leaves at most that hidden
+    ``.part`` file, never a partial file under the final name.
+
+    Raises
+    ------
+    OutputError
+        If ``path`` is one of ``inputs`` (also through a link or another spelling), its
+        folder does not exist, or the file system refuses the write.
     """
     path = Path(path)
     check_not_an_input(path, inputs)
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise OutputError(f"{path}: output folder {parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=parent)
-    os.close(fd)
+    if path.is_dir():
+        raise OutputError(f"{path}: is a folder, not a file name")
+    tmp = parent / f".{path.name}.{secrets.token_hex(6)}.part"
     try:
-        writer(tmp)
+        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot write in {parent} ({exc.strerror or exc})") from None
+    try:
+        writer(str(tmp))
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        try:
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+        if isinstance(exc, OSError):
+            raise OutputError(f"{path}: cannot write ({exc.strerror or _short(exc)})") from None
         raise
+    _fsync_folder(parent)
     return path
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename durable (POSIX); silently skipped where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def write_tiff(path: str | os.PathLike, data: np.ndarray, *, description: str | None = None,

@@ -8,7 +8,10 @@ timings are recorded too (they are the only field that changes between identical
 from __future__ import annotations
 
 import dataclasses
+import enum
+import importlib.metadata
 import json
+import math
 import os
 import platform
 from collections.abc import Iterable, Mapping
@@ -18,7 +21,12 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
+from .errors import InputError, OutputError
 from .io import atomic_write, file_sha256
+
+#: Distributions whose versions can change an output's bytes; recorded in every sidecar.
+_RECORDED_LIBRARIES = ("numpy", "scipy", "scikit-image", "tifffile", "pydicom", "rawpy",
+                       "opencv-contrib-python-headless", "opencv-python-headless", "opencv-python")
 
 
 def sidecar_path(output: str | os.PathLike) -> Path:
@@ -28,27 +36,67 @@ def sidecar_path(output: str | os.PathLike) -> Path:
 
 
 def to_jsonable(value: Any) -> Any:
-    """Convert dataclasses, paths and numpy values into plain JSON types."""
+    """Convert dataclasses, paths, enums, sets and numpy values into plain JSON types.
+
+    Non-finite floats (also inside numpy arrays and scalars) become ``None``, because JSON
+    has no NaN; anything else unknown is recorded by its ``str``.
+    """
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, enum.Enum):
+        return to_jsonable(value.value)
     if isinstance(value, Mapping):
         return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [to_jsonable(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
+    if isinstance(value, (set, frozenset)):
+        return sorted((to_jsonable(v) for v in value), key=repr)
+    if isinstance(value, (Path, os.PathLike)):
+        return os.fspath(value)
     if isinstance(value, np.ndarray):
-        return value.tolist()
+        return to_jsonable(value.tolist())
     if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
+        return to_jsonable(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    return str(value)
 
 
 def describe_inputs(inputs: Iterable[str | os.PathLike]) -> list[dict]:
-    """Path, size and SHA-256 of each input file."""
-    return [{"path": str(p), "bytes": Path(p).stat().st_size, "sha256": file_sha256(p)} for p in inputs]
+    """Path, size and SHA-256 of each input file.
+
+    Raises
+    ------
+    InputError
+        If an input cannot be read (for example, it vanished during the run).
+    """
+    described = []
+    for p in inputs:
+        try:
+            described.append({"path": os.fspath(p), "bytes": Path(p).stat().st_size,
+                              "sha256": file_sha256(p)})
+        except OSError as exc:
+            raise InputError(p, f"cannot checksum input ({exc.strerror or exc})") from None
+    return described
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of Python, the platform and the libraries that decode and process images."""
+    versions = {"python": platform.python_version(), "platform": platform.platform(terse=True)}
+    for dist in _RECORDED_LIBRARIES:
+        try:
+            versions[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+    try:
+        import rawpy
+
+        versions["libraw"] = str(rawpy.libraw_version)
+    except (ImportError, AttributeError):
+        pass
+    return versions
 
 
 def write_sidecar(output: str | os.PathLike, *, stage: str, parameters: Any,
@@ -72,16 +120,20 @@ def write_sidecar(output: str | os.PathLike, *, stage: str, parameters: Any,
         Numbers worth keeping (estimated gain, pulse counts...).
     """
     output = Path(output)
+    try:
+        output_sha256 = file_sha256(output)
+    except OSError as exc:
+        raise OutputError(f"{output}: cannot checksum the output ({exc.strerror or exc})") from None
     record = {
         "software": "napari-dslrxr",
         "version": __version__,
         "stage": stage,
         "parameters": to_jsonable(parameters),
         "inputs": describe_inputs(inputs),
-        "output": {"path": output.name, "sha256": file_sha256(output)},
+        "output": {"path": output.name, "sha256": output_sha256},
         "results": to_jsonable(dict(results or {})),
         "timings_s": {k: round(float(v), 4) for k, v in (timings_s or {}).items()},
-        "environment": {"python": platform.python_version(), "numpy": np.__version__},
+        "environment": library_versions(),
     }
     text = json.dumps(record, indent=2, sort_keys=False, allow_nan=False) + "\n"
     target = sidecar_path(output)
