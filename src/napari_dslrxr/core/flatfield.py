@@ -1,0 +1,277 @@
+"""Flat-field correction (stage ii): ``C = (R - D) / (F - D) * mean(F - D)``, per colour channel.
+
+``R`` is the radiograph, ``F`` the open-beam (flat) frame taken with the same camera settings
+and ``D`` the dark offset: a dark frame (X-rays off) or, without one, the raw black level.
+Several flats are combined by a pixel-wise median (which also removes pulses that hit only
+one of them); a single flat is pulse-cleaned with a switching median. The flat is then
+smoothed with a small Gaussian so that its own photon noise is not stamped onto every
+corrected radiograph (set ``flat_smoothing_px = 0`` when the flat carries fine fixed-pattern
+structure, such as scintillator or readout banding, that must be divided out). The result
+stays in counts: the normalisation by the mean of ``F - D`` over the exposed area keeps the
+photon statistics of the radiograph, which the later stages (grey conversion, log domain)
+rely on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .errors import InputError, ParameterError
+
+
+@dataclass
+class FlatFieldParams:
+    """Parameters of the flat-field stage (TOML section ``[flatfield]``).
+
+    Attributes
+    ----------
+    enabled : bool
+        Apply the correction when a flat frame is given.
+    flat_smoothing_px : float
+        Standard deviation (pixels) of the Gaussian applied to the combined flat; 0 keeps
+        every fine structure of the flat (0 to 200).
+    min_flat_fraction : float
+        The denominator ``F - D`` is clamped at this fraction of its 99.5th percentile, so
+        that unexposed pixels (outside the screen) are not divided by noise (0 to 1).
+    clean_flat_pulses : bool
+        Remove bright pulses from a single flat or dark frame before using it.
+    black_level_counts : float
+        Offset (counts) subtracted when no dark frame is given and the input carries no
+        black level of its own.
+    pulse_threshold_sigma : float
+        A pixel of a reference frame is a pulse when it exceeds its 5x5 median by this many
+        noise standard deviations (3 to 50).
+    """
+
+    enabled: bool = field(default=True, metadata={"help": "apply the flat-field correction when a flat frame is given"})
+    flat_smoothing_px: float = field(default=4.0, metadata={
+        "help": "Gaussian sigma applied to the combined flat, so its own noise is not added; "
+                "0 keeps fine fixed-pattern structure (banding)", "unit": "px", "min": 0.0, "max": 200.0})
+    min_flat_fraction: float = field(default=0.05, metadata={
+        "help": "clamp F - D at this fraction of its 99.5th percentile (unexposed pixels are not divided by noise)",
+        "unit": "fraction", "min": 0.0, "max": 1.0})
+    clean_flat_pulses: bool = field(default=True, metadata={
+        "help": "remove bright pulses from a single flat or dark frame with a switching median"})
+    black_level_counts: float = field(default=0.0, metadata={
+        "help": "offset subtracted when no dark frame is given (camera raw files supply their own)",
+        "unit": "counts", "min": 0.0, "max": 65535.0})
+    pulse_threshold_sigma: float = field(default=6.0, metadata={
+        "help": "a reference-frame pixel is a pulse when it exceeds its 5x5 median by this many noise sigmas",
+        "unit": "sigma", "min": 3.0, "max": 50.0})
+
+
+@dataclass
+class FlatReference:
+    """A prepared flat-field reference, reusable for every radiograph of a session.
+
+    Attributes
+    ----------
+    offset : ndarray, float32, (H, W[, 3]) or (C,) or scalar
+        Dark offset ``D`` in counts, subtracted from the radiograph.
+    denominator : ndarray or None, float32, (H, W[, 3])
+        ``F - D`` combined, cleaned, smoothed and clamped (counts); None without a flat.
+    scale : ndarray, float32, (C,) or scalar
+        Mean of ``F - D`` over the exposed area, per channel (counts).
+    n_flats : int
+        How many flat frames were combined.
+    cleaned_pulses : int
+        Pulse pixels replaced in the reference frames.
+    """
+
+    offset: np.ndarray
+    denominator: np.ndarray | None
+    scale: np.ndarray
+    n_flats: int = 0
+    cleaned_pulses: int = 0
+
+
+def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0) -> tuple[np.ndarray, int]:
+    """Replace bright impulsive pixels of a reference frame by their 5x5 median.
+
+    A switching median for flat and dark frames: the noise scale is the median absolute
+    residual scaled by ``sqrt(median level)`` (photon noise), so the test is valid over the
+    whole frame; flagged pixels are dilated by one pixel (pulses spread over neighbours).
+
+    Parameters
+    ----------
+    frame : ndarray, float32, (H, W) or (H, W, C)
+        Linear counts.
+    threshold_sigma : float
+        Detection threshold in noise standard deviations.
+
+    Returns
+    -------
+    cleaned : ndarray, float32
+        Same shape; unflagged pixels unchanged.
+    n_replaced : int
+        Number of replaced values.
+    """
+    arr = np.asarray(frame, np.float32)
+    if arr.ndim == 3:
+        out = np.empty_like(arr)
+        total = 0
+        for c in range(arr.shape[2]):
+            out[..., c], n = remove_bright_pulses(arr[..., c], threshold_sigma)
+            total += n
+        return out, total
+    med = cv2.medianBlur(np.ascontiguousarray(arr), 5)
+    residual = arr - med
+    level = np.maximum(med, 1.0)  # photon noise grows with the level; the offset only adds a constant
+    scaled = residual / np.sqrt(level)
+    sigma = 1.4826 * float(np.median(np.abs(scaled - np.median(scaled)))) + 1e-12
+    pulses = scaled > threshold_sigma * sigma
+    pulses = cv2.dilate(pulses.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & (residual > 0)
+    out = arr.copy()
+    out[pulses] = med[pulses]
+    return out, int(np.count_nonzero(pulses))
+
+
+def _as_float_frames(frames: Sequence[np.ndarray], what: str) -> list[np.ndarray]:
+    out = []
+    for i, f in enumerate(frames):
+        arr = np.asarray(f)
+        if arr.dtype.kind not in "uif":
+            raise InputError(f"{what} {i + 1}", f"unsupported dtype {arr.dtype}")
+        arr = arr.astype(np.float32, copy=False)
+        if not np.all(np.isfinite(arr)):
+            raise InputError(f"{what} {i + 1}", "contains NaN or infinite values")
+        out.append(arr)
+    if len({a.shape for a in out}) > 1:
+        raise InputError(what, f"frames differ in shape: {sorted({a.shape for a in out})}")
+    return out
+
+
+def combine_frames(frames: Sequence[np.ndarray]) -> np.ndarray:
+    """Pixel-wise median of three or more frames, mean of two, copy of one (float32)."""
+    if len(frames) == 1:
+        return np.array(frames[0], np.float32)
+    stack = np.stack(frames)
+    return (np.median(stack, axis=0) if len(frames) >= 3 else stack.mean(axis=0)).astype(np.float32)
+
+
+def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray] = (),
+                           darks: Sequence[np.ndarray] = (), black_level=None,
+                           params: FlatFieldParams | None = None) -> FlatReference:
+    """Build the dark offset and the smoothed flat denominator for radiographs of ``shape``.
+
+    Parameters
+    ----------
+    shape : tuple
+        Shape of the radiographs, ``(H, W)`` or ``(H, W, C)``.
+    flats : sequence of ndarray
+        Open-beam frames (counts, same shape as the radiograph). May be empty.
+    darks : sequence of ndarray
+        Dark frames (counts). When empty, ``black_level`` is the offset.
+    black_level : float or sequence of float, optional
+        Raw black level per channel (counts); 0 when neither darks nor a black level is given.
+    params : FlatFieldParams, optional
+
+    Returns
+    -------
+    FlatReference
+
+    Raises
+    ------
+    InputError
+        A flat or dark of another shape than the radiograph, NaN values, or an all-dark flat.
+    """
+    params = params or FlatFieldParams()
+    n_channels = shape[2] if len(shape) == 3 else 1
+    cleaned = 0
+    if darks:
+        dark_frames = _as_float_frames(darks, "dark frame")
+        if dark_frames[0].shape != tuple(shape):
+            raise InputError("dark frame", f"shape {dark_frames[0].shape} differs from the radiograph's {tuple(shape)}")
+        offset = combine_frames(dark_frames)
+        if len(dark_frames) == 1 and params.clean_flat_pulses:
+            offset, n = remove_bright_pulses(offset, params.pulse_threshold_sigma)
+            cleaned += n
+    elif black_level is not None:
+        offset = np.asarray(black_level, np.float32).reshape(-1)
+        if offset.size not in (1, n_channels):
+            raise ParameterError(f"black level: expected 1 or {n_channels} values, got {offset.size}")
+        offset = offset if n_channels > 1 else offset[:1]
+    else:
+        offset = np.zeros(n_channels if n_channels > 1 else 1, np.float32)
+    if not flats or not params.enabled:
+        return FlatReference(offset=offset, denominator=None, scale=np.ones(n_channels, np.float32),
+                             n_flats=0, cleaned_pulses=cleaned)
+    flat_frames = _as_float_frames(flats, "flat frame")
+    if flat_frames[0].shape != tuple(shape):
+        raise InputError("flat frame", f"shape {flat_frames[0].shape} differs from the radiograph's {tuple(shape)}")
+    flat = combine_frames(flat_frames)
+    if len(flat_frames) <= 2 and params.clean_flat_pulses:
+        flat, n = remove_bright_pulses(flat, params.pulse_threshold_sigma)
+        cleaned += n
+    denominator = flat - offset
+    del flat
+    if params.flat_smoothing_px > 0:
+        denominator = cv2.GaussianBlur(denominator, (0, 0), float(params.flat_smoothing_px),
+                                       borderType=cv2.BORDER_REFLECT)
+    chans = denominator.reshape(denominator.shape[0], denominator.shape[1], -1)
+    scale = np.empty(chans.shape[2], np.float32)
+    for c in range(chans.shape[2]):
+        plane = chans[..., c]
+        top = float(np.percentile(plane[::4, ::4], 99.5))
+        if not top > 0:
+            raise InputError("flat frame", f"channel {c}: no exposed pixels (flat is not brighter than the dark offset)")
+        floor = max(params.min_flat_fraction * top, 1e-6)
+        exposed = plane > 0.5 * top  # the exposed screen area: mean over it is the normalisation
+        scale[c] = float(plane[exposed].mean())
+        np.maximum(plane, floor, out=plane)
+    return FlatReference(offset=offset, denominator=denominator, scale=scale,
+                         n_flats=len(flat_frames), cleaned_pulses=cleaned)
+
+
+def apply_flat_field(image: np.ndarray, reference: FlatReference) -> np.ndarray:
+    """Correct one radiograph with a prepared reference: ``(R - D) / (F - D) * mean(F - D)``.
+
+    Parameters
+    ----------
+    image : ndarray, (H, W) or (H, W, C)
+        Linear counts (uint16 or float).
+    reference : FlatReference
+
+    Returns
+    -------
+    ndarray, float32
+        Flat-fielded counts, same shape; negative values (read noise below the offset) kept.
+    """
+    out = np.asarray(image, np.float32).copy() if np.asarray(image).dtype != np.float32 else np.array(image)
+    out -= reference.offset
+    if reference.denominator is not None:
+        out /= reference.denominator
+        if out.ndim == 3:
+            out *= reference.scale
+        else:
+            out *= reference.scale[0]
+    return out
+
+
+def flat_field_correct(image: np.ndarray, flats: Sequence[np.ndarray] = (), darks: Sequence[np.ndarray] = (),
+                       *, black_level=None, params: FlatFieldParams | None = None) -> np.ndarray:
+    """Flat-field correct one radiograph (convenience: prepare the reference, then apply it).
+
+    Parameters
+    ----------
+    image : ndarray, (H, W) or (H, W, C)
+        Linear counts.
+    flats, darks : sequence of ndarray
+        Open-beam and dark frames of the same shape (counts).
+    black_level : float or sequence, optional
+        Used as the offset when no dark frame is given.
+    params : FlatFieldParams, optional
+
+    Returns
+    -------
+    ndarray, float32
+        Corrected counts.
+    """
+    image = np.asarray(image)
+    reference = prepare_flat_reference(image.shape, flats=flats, darks=darks,
+                                       black_level=black_level, params=params)
+    return apply_flat_field(image, reference)

@@ -1,0 +1,321 @@
+"""All pipeline parameters in one dataclass, saved and loaded as commented TOML.
+
+:class:`PipelineParams` holds one dataclass per stage; the TOML file has one table per stage
+(``[impulse]``, ``[flatfield]``, ``[region]``, ``[deblur]``, ``[dynamic_range]``,
+``[contrast]``, ``[output]``). The command line (``dslrxr run -c params.toml``) and the napari
+widgets read and write the same file. Missing keys take their defaults; unknown keys, wrong
+types and out-of-range values raise :class:`~.errors.ParameterError` with a one-line message
+naming the key (and, for a misspelt key, the closest valid name).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import os
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tomli_w
+
+from .contrast import ContrastParams
+from .dynamic_range import DynamicRangeParams
+from .errors import ParameterError
+from .flatfield import FlatFieldParams
+from .region import RegionParams
+
+
+def _impulse_class():
+    from .impulse import ImpulseParams
+
+    return ImpulseParams
+
+
+def _default_impulse():
+    return _impulse_class()()
+
+
+@dataclass
+class DeblurParams:
+    """Parameters of the optional deblurring stage (TOML section ``[deblur]``).
+
+    Deblurring runs only when a PSF model is given (``dslrxr run --psf psf.json``).
+
+    Attributes
+    ----------
+    method : str
+        ``"adaptive"`` (sparse adaptive prior), ``"wiener"`` or ``"rls"``.
+    reg : float or str
+        Regularisation weight, or ``"auto"`` to estimate it from the image.
+    """
+
+    method: str = field(default="adaptive", metadata={
+        "help": "deconvolution method (runs only when a PSF model is given)", "choices": ("adaptive", "wiener", "rls")})
+    reg: float | str = field(default="auto", metadata={
+        "help": "regularisation weight (> 0), or \"auto\" to estimate it from the image", "min": 0.0, "max": 1e6})
+
+
+@dataclass
+class OutputParams:
+    """What the run writes (TOML section ``[output]``).
+
+    Attributes
+    ----------
+    tiff : bool
+        16-bit TIFF of the display-ready radiograph.
+    png_preview : bool
+        8-bit PNG preview.
+    preview_max_side_px : int
+        Longest side of the PNG preview (px); 0 = full size.
+    dicom : bool
+        DICOM Digital X-Ray image (For Presentation).
+    polarity : str
+        ``"bone_white"`` (radiograph convention: more attenuation = brighter) or
+        ``"as_captured"`` (more light = brighter).
+    outside_region : str
+        ``"black"`` or ``"white"``: display value outside the screen region.
+    pixel_spacing_mm : float
+        Detector pixel pitch at the screen (mm); 0 = unknown (not written to DICOM).
+    """
+
+    tiff: bool = field(default=True, metadata={"help": "write the 16-bit TIFF of the display-ready radiograph"})
+    png_preview: bool = field(default=True, metadata={"help": "write an 8-bit PNG preview"})
+    preview_max_side_px: int = field(default=2048, metadata={
+        "help": "longest side of the PNG preview; 0 = full size", "unit": "px", "min": 0, "max": 100000})
+    dicom: bool = field(default=False, metadata={"help": "write a DICOM Digital X-Ray image (For Presentation)"})
+    polarity: str = field(default="bone_white", metadata={
+        "help": "bone_white: more attenuation = brighter (radiograph convention); as_captured: more light = brighter",
+        "choices": ("bone_white", "as_captured")})
+    outside_region: str = field(default="black", metadata={
+        "help": "display value outside the screen region", "choices": ("black", "white")})
+    pixel_spacing_mm: float = field(default=0.0, metadata={
+        "help": "pixel pitch at the screen; 0 = unknown (then not written to DICOM)", "unit": "mm", "min": 0.0, "max": 100.0})
+
+
+@dataclass
+class PipelineParams:
+    """Every parameter of the six-stage pipeline, one dataclass per stage."""
+
+    impulse: typing.Any = field(default_factory=_default_impulse)
+    flatfield: FlatFieldParams = field(default_factory=FlatFieldParams)
+    region: RegionParams = field(default_factory=RegionParams)
+    deblur: DeblurParams = field(default_factory=DeblurParams)
+    dynamic_range: DynamicRangeParams = field(default_factory=DynamicRangeParams)
+    contrast: ContrastParams = field(default_factory=ContrastParams)
+    output: OutputParams = field(default_factory=OutputParams)
+
+
+SECTION_HELP = {
+    "impulse": "(i) impulse (pulse) removal on the colour image: switching median driven by a Poisson + pulse mixture",
+    "flatfield": "(ii) flat field per colour channel: (R - D) / (F - D) x mean(F - D)",
+    "region": "(iii) exposed screen region and value-of-interest scaling",
+    "deblur": "(iv) optional deconvolution, only when a PSF model is given (--psf)",
+    "dynamic_range": "(v) dynamic-range / latitude reduction in the log domain and the display curve",
+    "contrast": "(vi) multiscale contrast enhancement (MUSICA-style Laplacian pyramid)",
+    "output": "files written by the run",
+}
+
+# Help for A's ImpulseParams fields (its dataclass carries docstrings, not field metadata).
+_IMPULSE_HELP = {
+    "passes_h": "detect-and-replace passes on hue (0 skips; 0 to 10)",
+    "passes_s": "passes on saturation (0 to 10)",
+    "passes_v": "passes on value V = max(R, G, B) (0 to 10)",
+    "passes_grey": "passes on a grey image and on each raw CFA plane (0 to 10)",
+    "window_px": "median window of the first detection, 3 or 5 px",
+    "max_patch_px": "largest pulse patch side grown into, 1 to 8 px",
+    "bright_only": "pulses on photon-counting channels are bright only (direct X-ray hits)",
+    "posterior_threshold": "a pixel is a pulse when its posterior pulse probability exceeds this (0 < t < 1)",
+    "min_saturation": "pixels with saturation below this (0 to 1) are left out of hue filtering",
+    "min_value_fraction": "pixels with V below this fraction of the 99th percentile are left out of hue filtering",
+    "em_samples": "pixels subsampled for the EM fit (>= 1000)",
+    "em_iterations": "maximum EM iterations (1 to 500)",
+}
+
+
+def _section_fields(section_obj) -> list[dataclasses.Field]:
+    return list(dataclasses.fields(section_obj))
+
+
+def _check_value(section: str, f: dataclasses.Field, value, default):
+    """Type and range check of one value; returns the (possibly converted) value."""
+    name = f"{section}.{f.name}"
+    meta = f.metadata or {}
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ParameterError(f"{name}: expected true or false, got {value!r}")
+        return value
+    if f.name == "reg" and section == "deblur":
+        if isinstance(value, str):
+            if value != "auto":
+                raise ParameterError(f"{name}: expected a number > 0 or \"auto\", got {value!r}")
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+            raise ParameterError(f"{name}: expected a number > 0 or \"auto\", got {value!r}")
+        return float(value)
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            else:
+                raise ParameterError(f"{name}: expected an integer, got {value!r}")
+    elif isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ParameterError(f"{name}: expected a number, got {value!r}")
+        value = float(value)
+        if value != value:
+            raise ParameterError(f"{name}: expected a number, got NaN")
+    elif isinstance(default, str):
+        if not isinstance(value, str):
+            raise ParameterError(f"{name}: expected a string, got {value!r}")
+        choices = meta.get("choices")
+        if choices and value not in choices:
+            hint = difflib.get_close_matches(value, choices, n=1)
+            extra = f"; did you mean '{hint[0]}'?" if hint else ""
+            raise ParameterError(f"{name}: must be one of {', '.join(choices)}, got {value!r}{extra}")
+        return value
+    elif isinstance(default, list):
+        if not isinstance(value, list):
+            raise ParameterError(f"{name}: expected a list, got {value!r}")
+        if f.name == "polygon_xy" and value:
+            ok = len(value) == 4 and all(isinstance(p, list) and len(p) == 2 and
+                                         all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)
+                                         for p in value)
+            if not ok:
+                raise ParameterError(f"{name}: expected [] or 4 [x, y] points in pixels, got {value!r}")
+            value = [[float(c) for c in p] for p in value]
+        return value
+    lo, hi = meta.get("min"), meta.get("max")
+    if lo is not None and value < lo or hi is not None and value > hi:
+        raise ParameterError(f"{name}: {value} is out of range [{lo}, {hi}]")
+    return value
+
+
+def _build_section(section: str, cls, values: dict):
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    for key in values:
+        if key not in known:
+            hint = difflib.get_close_matches(key, list(known), n=1)
+            extra = f"; did you mean '{hint[0]}'?" if hint else f" (valid: {', '.join(known)})"
+            raise ParameterError(f"unknown key '{key}' in [{section}]{extra}")
+    defaults = cls()
+    kwargs = {}
+    for key, value in values.items():
+        kwargs[key] = _check_value(section, known[key], value, getattr(defaults, key))
+    try:
+        return cls(**kwargs)
+    except ParameterError as exc:
+        msg = str(exc)
+        raise ParameterError(msg if msg.startswith(section) else f"{section}.{msg}") from None
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"[{section}]: {exc}") from None
+
+
+def _section_classes() -> dict[str, type]:
+    return {f.name: (_impulse_class() if f.name == "impulse" else f.default_factory)
+            for f in dataclasses.fields(PipelineParams)}
+
+
+def params_from_dict(data: dict) -> PipelineParams:
+    """Build and validate :class:`PipelineParams` from a nested mapping (a parsed TOML file).
+
+    Raises
+    ------
+    ParameterError
+        Unknown section or key (with a suggestion), wrong type or out-of-range value.
+    """
+    classes = _section_classes()
+    kwargs = {}
+    for section, values in data.items():
+        if section not in classes:
+            hint = difflib.get_close_matches(section, list(classes), n=1)
+            extra = f"; did you mean '[{hint[0]}]'?" if hint else f" (valid: {', '.join(classes)})"
+            raise ParameterError(f"unknown section [{section}]{extra}")
+        if not isinstance(values, dict):
+            raise ParameterError(f"[{section}] must be a table of key = value pairs, got {values!r}")
+        kwargs[section] = _build_section(section, classes[section], values)
+    return PipelineParams(**kwargs)
+
+
+def validate_params(params: PipelineParams) -> PipelineParams:
+    """Re-check every value of a :class:`PipelineParams` (e.g. one edited in a GUI)."""
+    return params_from_dict(params_to_dict(params))
+
+
+def params_to_dict(params: PipelineParams) -> dict:
+    """Nested plain dict of every parameter (TOML-ready)."""
+    out = {}
+    for f in dataclasses.fields(params):
+        section = getattr(params, f.name)
+        out[f.name] = {sf.name: getattr(section, sf.name) for sf in dataclasses.fields(section)}
+    return out
+
+
+def load_params(path: str | os.PathLike) -> PipelineParams:
+    """Read a parameter file; missing keys take their defaults.
+
+    Raises
+    ------
+    ParameterError
+        Missing or unreadable file, TOML syntax error, unknown key, wrong type or range.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ParameterError(f"{path}: parameter file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ParameterError(f"{path}: cannot read the parameter file ({exc})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ParameterError(f"{path}: not valid TOML ({exc})") from None
+    try:
+        return params_from_dict(data)
+    except ParameterError as exc:
+        raise ParameterError(f"{path}: {exc}") from None
+
+
+def _field_comment(section: str, f: dataclasses.Field) -> str:
+    meta = f.metadata or {}
+    text = meta.get("help") or (_IMPULSE_HELP.get(f.name) if section == "impulse" else None) or f.name
+    bits = []
+    if meta.get("unit"):
+        bits.append(f"unit: {meta['unit']}")
+    if meta.get("min") is not None or meta.get("max") is not None:
+        bits.append(f"range {meta.get('min')} to {meta.get('max')}")
+    if meta.get("choices"):
+        bits.append("one of " + ", ".join(meta["choices"]))
+    return f"# {text}" + (f" ({'; '.join(bits)})" if bits else "")
+
+
+def params_to_toml(params: PipelineParams | None = None, *, comments: bool = True) -> str:
+    """The TOML text of ``params`` (default: the defaults), with a comment above every key."""
+    params = params or PipelineParams()
+    lines = ["# napari-dslrxr pipeline parameters (dslrxr run -c this_file.toml).",
+             "# Missing keys take their defaults; unknown keys are an error.", ""]
+    for f in dataclasses.fields(params):
+        section = getattr(params, f.name)
+        if comments:
+            lines.append(f"# {SECTION_HELP.get(f.name, f.name)}")
+        lines.append(f"[{f.name}]")
+        for sf in dataclasses.fields(section):
+            if comments:
+                lines.append(_field_comment(f.name, sf))
+            lines.append(tomli_w.dumps({sf.name: getattr(section, sf.name)}).strip())
+        lines.append("")
+    return "\n".join(lines)
+
+
+def default_params_toml() -> str:
+    """The full default parameter file, every key with a comment (units, range, meaning)."""
+    return params_to_toml(PipelineParams())
+
+
+def save_params(params: PipelineParams, path: str | os.PathLike) -> Path:
+    """Write ``params`` as commented TOML (atomically)."""
+    from .io import atomic_write
+
+    text = params_to_toml(validate_params(params))
+    return atomic_write(Path(path), lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))

@@ -1,0 +1,82 @@
+"""Flat field: vignetting removed on synthetic frames; real banding removed on shared data."""
+
+import numpy as np
+import pytest
+
+from napari_dslrxr.core.errors import InputError
+from napari_dslrxr.core.flatfield import FlatFieldParams, flat_field_correct, remove_bright_pulses
+from napari_dslrxr.core.io import read_image
+from napari_dslrxr.core.phantom import make_dslr_radiograph
+
+
+def _row_mean_std(img, rows, cols):
+    profile = img[rows][:, cols].mean(axis=1)
+    return profile.std() / profile.mean()
+
+
+def test_synthetic_flat_field_removes_vignetting():
+    # an open-beam exposure corrected by an independent flat must come out uniform
+    frames = make_dslr_radiograph((300, 400), seed=2)
+    other = make_dslr_radiograph((300, 400), seed=3)
+    out = flat_field_correct(other.flat, [frames.flat], [frames.dark])
+    inner = frames.truth.screen_mask & other.truth.screen_mask
+    inner[:, :70] = inner[:, -70:] = False
+    inner[:50] = inner[-50:] = False
+
+    def block_spread(img):
+        means = [img[r:r + 25, c:c + 25].mean() for r in range(0, 300, 25) for c in range(0, 400, 25)
+                 if inner[r:r + 25, c:c + 25].all()]
+        return np.std(means) / np.mean(means), len(means)
+
+    before, n = block_spread(other.flat[..., 1].astype(np.float64) - other.black_level)
+    after, _ = block_spread(out[..., 1])
+    assert n >= 40
+    assert before > 0.05  # vignetting + heel: > 5 % spread
+    assert after < 0.005  # residual < 0.5 % after correction
+
+
+def test_pulses_removed_from_reference_frame(rng):
+    flat = rng.poisson(1000, (64, 64)).astype(np.float32)
+    flat[10, 10] += 5000
+    flat[30:32, 40:42] += 3000
+    cleaned, n = remove_bright_pulses(flat)
+    assert cleaned[10, 10] < 1200 and cleaned[30:32, 40:42].max() < 1200
+    assert n < 100
+
+
+def test_mismatched_flat_shape_is_an_input_error():
+    with pytest.raises(InputError, match="flat frame"):
+        flat_field_correct(np.ones((20, 20), np.float32), [np.ones((21, 20), np.float32)])
+
+
+@pytest.mark.realdata
+def test_savu_banding_drops_tenfold(shared_data):
+    folder = shared_data / "savu_projections"
+    flat = read_image(folder / "flat_00001.tiff").data
+    dark = read_image(folder / "dark_00001.tiff").data
+    params = FlatFieldParams(flat_smoothing_px=0.0, clean_flat_pulses=False)  # banding is fine structure
+    # sample-free area: both side strips, without the two border rows (detector edge)
+    rows, cols = slice(2, -2), np.r_[0:20, 140:160]
+    for name in ("raw_00000.tiff", "raw_00040.tiff", "raw_00090.tiff"):
+        raw = read_image(folder / name).data.astype(np.float32)
+        corrected = flat_field_correct(raw, [flat], [dark], params=params)
+        factor = _row_mean_std(raw, rows, cols) / _row_mean_std(corrected, rows, cols)
+        assert factor >= 10.0, (name, factor)
+
+
+@pytest.mark.realdata
+def test_niqa_banding_reduced(shared_data):
+    folder = shared_data / "niqa_edge"
+    flat = read_image(folder / "ob.tif").data
+    dark = read_image(folder / "dc.tif").data
+    params = FlatFieldParams(flat_smoothing_px=0.0)
+    rows, cols = slice(2, -2), slice(0, 50)  # left strip is outside the edge plate
+    factors = []
+    for i in range(8):
+        raw = read_image(folder / f"edge20mm_000{i}.tif").data
+        cleaned, _ = remove_bright_pulses(raw)
+        corrected = flat_field_correct(cleaned, [flat], [dark], params=params)
+        factors.append(_row_mean_std(raw.astype(np.float32), rows, cols) / _row_mean_std(corrected, rows, cols))
+    # Measured 4.3-6.2x per frame (median 5.7x): the residual row structure changes between
+    # exposures, so one flat cannot reach 10x here (see the report); guard against regressions.
+    assert np.median(factors) > 5.0 and min(factors) > 4.0, factors

@@ -1,0 +1,55 @@
+"""Parameter file: round trip, comments, and one-line errors."""
+
+import tomllib
+
+import pytest
+
+from napari_dslrxr.core.errors import ParameterError
+from napari_dslrxr.core.params import (PipelineParams, default_params_toml, load_params,
+                                       params_from_dict, save_params)
+
+
+def test_default_file_round_trips_and_every_key_is_commented(tmp_path):
+    text = default_params_toml()
+    assert params_from_dict(tomllib.loads(text)) == PipelineParams()
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        if "=" in line and not line.startswith("#"):
+            assert lines[i - 1].startswith("#"), line
+    for section in ("impulse", "flatfield", "region", "deblur", "dynamic_range", "contrast", "output"):
+        assert f"[{section}]" in text
+    params = PipelineParams()
+    params.contrast.detail_contrast = 0.8
+    params.region.polygon_xy = [[1.0, 2.0], [30.0, 2.0], [30.0, 40.0], [1.0, 40.0]]
+    params.deblur.reg = 12.5
+    path = save_params(params, tmp_path / "p.toml")
+    assert load_params(path) == params
+
+
+@pytest.mark.parametrize("data,message", [
+    ({"contrast": {"detial_contrast": 0.5}}, "unknown key 'detial_contrast' in [contrast]; did you mean 'detail_contrast'?"),
+    ({"contrst": {}}, "did you mean '[contrast]'"),
+    ({"contrast": {"levels": "many"}}, "contrast.levels: expected an integer"),
+    ({"contrast": {"bone_contrast": 10.0}}, "contrast.bone_contrast: 10.0 is out of range"),
+    ({"region": {"rectify": 1}}, "region.rectify: expected true or false"),
+    ({"deblur": {"reg": "automatic"}}, "deblur.reg"),
+    ({"output": {"polarity": "bone"}}, "output.polarity: must be one of"),
+    ({"impulse": {"window_px": 4}}, "impulse.window_px"),
+])
+def test_bad_values_give_one_line_errors(data, message):
+    with pytest.raises(ParameterError) as err:
+        params_from_dict(data)
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ParameterError, match="not found"):
+        load_params(tmp_path / "nope.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[contrast\nlevels = 3\n")
+    with pytest.raises(ParameterError, match="not valid TOML"):
+        load_params(bad)
+    partial = tmp_path / "partial.toml"
+    partial.write_text("[contrast]\nlevels = 5\n")
+    assert load_params(partial).contrast.levels == 5
+    assert load_params(partial).dynamic_range == PipelineParams().dynamic_range
