@@ -9,7 +9,7 @@ coefficients go through a power-law conversion (Vuylsteke & Schoeters, SPIE 2167
 
 which amplifies small coefficients more than large ones (subtle detail up, strong edges
 kept). Noise lives in the smallest coefficients, so near zero the mapping is blended towards
-the identity (unit gain) with a weight ``1 - exp(-(|x| / x_c)^2)``, ``x_c = noise_floor *
+the identity (unit gain) with a weight ``1 - exp(-(|x| / x_c)^4)``, ``x_c = noise_floor *
 sigma_0`` and ``sigma_0`` the robust noise level of the finest band (1.4826 MAD): noise-level
 coefficients keep gain ~1, and the power law takes over above the noise floor. ``M_l`` is the
 99.5th percentile of ``|b_l|`` inside the region. ``a_l`` is ``edge_sharpness`` for the
@@ -50,7 +50,7 @@ class ContrastParams:
     detail_contrast: float = field(default=0.5, metadata={
         "help": "strength of subtle-detail enhancement: 0 = off, 1 = strongest (power p = 1 - 0.7 x this)",
         "unit": "strength", "min": 0.0, "max": 1.0})
-    bone_contrast: float = field(default=1.3, metadata={
+    bone_contrast: float = field(default=2.0, metadata={
         "help": "gain of mid and coarse structures (bone, organ outlines)", "unit": "gain", "min": 0.5, "max": 3.0})
     edge_sharpness: float = field(default=1.0, metadata={
         "help": "gain of the finest band (edges, fine texture)", "unit": "gain", "min": 0.5, "max": 3.0})
@@ -126,8 +126,9 @@ def map_coefficients(band: np.ndarray, *, gain: float, power: float, max_coef: f
     np.power(pl_gain, np.float32(power - 1.0), out=pl_gain)
     pl_gain *= np.float32(gain)
     if noise_level > 0:
-        weight = mag  # reuse buffer: w = 1 - exp(-(|x|/x_c)^2)
+        weight = mag  # reuse buffer: w = 1 - exp(-(|x|/x_c)^4)
         weight *= np.float32(1.0 / noise_level)
+        np.square(weight, out=weight)
         np.square(weight, out=weight)
         np.negative(weight, out=weight)
         np.exp(weight, out=weight)

@@ -54,7 +54,7 @@ class DynamicRangeParams:
         "min": 0.01, "max": 0.3})
     lut_center: float = field(default=0.5, metadata={
         "help": "centre of the sigmoid display curve", "unit": "VOI units (0..1)", "min": 0.0, "max": 1.0})
-    lut_width: float = field(default=0.28, metadata={
+    lut_width: float = field(default=0.6, metadata={
         "help": "width of the sigmoid display curve; smaller = steeper", "unit": "VOI units", "min": 0.05, "max": 2.0})
 
 

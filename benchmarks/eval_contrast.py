@@ -1,0 +1,187 @@
+"""Contrast enhancement vs CLAHE: GCF and flat-region noise amplification at equal GCF.
+
+For each image (the two CR radiographs in ``$DSLRXR_DATA/cr_dicom`` and two synthetic DSLR
+frames from :mod:`napari_dslrxr.core.phantom`):
+
+* input display ``x``: the radiograph with a 0.5-99.5 % stretch (CR), or the pipeline's
+  value-of-interest scaled attenuation image before stages v-vi (synthetic frames);
+* ours: dynamic-range reduction + MUSICA + sigmoid curve (default parameters);
+* CLAHE: ``skimage.exposure.equalize_adapthist(x, clip_limit=c)`` with ``c`` bisected so its
+  GCF equals ours (if CLAHE cannot reach our GCF, its largest clip limit is reported);
+* GCF (Matkovic et al. 2005) of the 8-bit display images, and noise amplification: the
+  standard deviation of the high-pass residual (image minus a Gaussian sigma = 2 px blur)
+  in a flat patch, output / input.
+
+Writes ``results/eval_contrast.json`` and ``docs/contrast_<name>.png`` (input | ours | CLAHE).
+Run: ``python benchmarks/eval_contrast.py``.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _harness import record  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("DSLRXR_DATA", REPO.parent / "shared" / "data"))
+
+
+def gcf(display: np.ndarray) -> float:
+    """Global contrast factor of a [0, 1] display image (project metric when available)."""
+    try:
+        from napari_dslrxr.core.metrics import global_contrast_factor
+    except ImportError:
+        global_contrast_factor = None
+    if global_contrast_factor is not None:
+        return float(global_contrast_factor(np.clip(display, 0, 1).astype(np.float32)))
+    return local_gcf(display)
+
+
+def local_gcf(display: np.ndarray) -> float:
+    """GCF (Matkovic 2005): 8-bit, gamma 2.2, area-averaged superpixels in linear light."""
+    weights = [(-0.406385 * i / 9 + 0.334573) * i / 9 + 0.0877526 for i in range(1, 10)]
+    k8 = np.round(np.clip(display, 0, 1) * 255).astype(np.float32)
+    lin = (k8 / 255.0) ** 2.2
+    h, w = lin.shape
+    total = 0.0
+    for weight, size in zip(weights, (1, 2, 4, 8, 16, 25, 50, 100, 200), strict=True):
+        lev = lin if size == 1 else cv2.resize(lin, (max(1, round(w / size)), max(1, round(h / size))),
+                                              interpolation=cv2.INTER_AREA)
+        lum = 100.0 * np.sqrt(lev)
+        diff_sum = np.zeros_like(lum)
+        count = np.zeros_like(lum)
+        dx, dy = np.abs(np.diff(lum, axis=1)), np.abs(np.diff(lum, axis=0))
+        diff_sum[:, :-1] += dx
+        diff_sum[:, 1:] += dx
+        count[:, :-1] += 1
+        count[:, 1:] += 1
+        diff_sum[:-1] += dy
+        diff_sum[1:] += dy
+        count[:-1] += 1
+        count[1:] += 1
+        total += weight * float(np.mean(diff_sum / np.maximum(count, 1)))
+    return total
+
+
+def stretch(image: np.ndarray) -> np.ndarray:
+    """0.5-99.5 % percentile stretch to [0, 1], float32."""
+    lo, hi = np.percentile(image, [0.5, 99.5])
+    return np.clip((image.astype(np.float32) - lo) / max(hi - lo, 1e-9), 0, 1).astype(np.float32)
+
+
+def highpass_std(image: np.ndarray, patch: tuple[int, int, int, int]) -> float:
+    """Std of (patch - Gaussian(sigma 2 px) of the patch): the noise in a flat patch."""
+    r0, c0, r1, c1 = patch
+    p = np.ascontiguousarray(image[r0:r1, c0:c1], np.float32)
+    return float(np.std(p - cv2.GaussianBlur(p, (0, 0), 2.0)))
+
+
+def find_flat_patch(display: np.ndarray, size: int = 48) -> tuple[int, int, int, int]:
+    """The mid-grey patch with the smallest large-scale gradient (a flat area of anatomy)."""
+    h, w = display.shape
+    low = cv2.GaussianBlur(display, (0, 0), 8.0)
+    gy, gx = np.gradient(low)
+    grad = np.hypot(gx, gy)
+    best = None
+    for r in range(size, h - 2 * size, size // 2):
+        for c in range(size, w - 2 * size, size // 2):
+            m = float(display[r:r + size, c:c + size].mean())
+            if not 0.25 < m < 0.75:
+                continue
+            score = float(grad[r:r + size, c:c + size].mean())
+            if best is None or score < best[0]:
+                best = (score, (r, c, r + size, c + size))
+    if best is None:
+        raise RuntimeError("no mid-grey flat patch found")
+    return best[1]
+
+
+def clahe(display: np.ndarray, clip_limit: float) -> np.ndarray:
+    from skimage.exposure import equalize_adapthist
+
+    return equalize_adapthist(display, clip_limit=clip_limit).astype(np.float32)
+
+
+def clahe_at_gcf(display: np.ndarray, target: float, crop) -> tuple[float, np.ndarray, float]:
+    """Bisect CLAHE's clip limit (log scale, 0.001..0.5) so its GCF equals ``target``."""
+    lo, hi = np.log(0.001), np.log(0.5)
+    out_hi = clahe(display, float(np.exp(hi)))
+    if gcf(out_hi[crop]) < target:
+        return float(np.exp(hi)), out_hi, gcf(out_hi[crop])
+    best = None
+    for _ in range(14):
+        mid = 0.5 * (lo + hi)
+        out = clahe(display, float(np.exp(mid)))
+        g = gcf(out[crop])
+        best = (float(np.exp(mid)), out, g)
+        if abs(g - target) < 0.005 * target:
+            break
+        if g < target:
+            lo = mid
+        else:
+            hi = mid
+    return best
+
+
+def compare(name: str, input_display: np.ndarray, ours: np.ndarray, patch, crop=np.s_[:, :]) -> dict:
+    """GCF and noise ratios of ours and CLAHE (at our GCF) on one image; saves a PNG."""
+    g_in, g_ours = gcf(input_display[crop]), gcf(ours[crop])
+    noise_in = highpass_std(input_display, patch)
+    clip, cl_out, g_cl = clahe_at_gcf(input_display, g_ours, crop)
+    row = {"gcf_input": round(g_in, 3), "gcf_ours": round(g_ours, 3), "gcf_clahe": round(g_cl, 3),
+           "clahe_clip_limit": round(clip, 5), "noise_ratio_ours": round(highpass_std(ours, patch) / noise_in, 3),
+           "noise_ratio_clahe": round(highpass_std(cl_out, patch) / noise_in, 3), "flat_patch_rc": list(patch)}
+    row["pass"] = bool(row["gcf_ours"] > row["gcf_input"] and row["noise_ratio_ours"] < row["noise_ratio_clahe"])
+    gap = np.ones((input_display.shape[0], 8), np.float32)
+    panel = np.hstack([input_display, gap, ours, gap, cl_out])
+    scale = min(1.0, 2400 / panel.shape[1])
+    panel = cv2.resize(panel, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else panel
+    from napari_dslrxr.core.io import write_png
+
+    (REPO / "docs").mkdir(exist_ok=True)
+    write_png(REPO / "docs" / f"contrast_{name}.png", np.round(np.clip(panel, 0, 1) * 255).astype(np.uint8))
+    print(name, row, flush=True)
+    return row
+
+
+def main() -> int:
+    from napari_dslrxr.core.io import read_image
+    from napari_dslrxr.core.params import PipelineParams
+    from napari_dslrxr.core.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.pipeline import enhance_radiograph, process_frame
+
+    rows = {}
+    for fname in ("RG1_UNCR.dcm", "RG3_UNCR.dcm"):
+        path = DATA / "cr_dicom" / fname
+        if not path.exists():
+            print(f"skipping {path}: not found")
+            continue
+        image = read_image(path).data.astype(np.float32)
+        input_display = stretch(image)
+        ours = enhance_radiograph(image, PipelineParams())
+        rows[fname.split("_")[0]] = compare(fname.split("_")[0], input_display, ours, find_flat_patch(input_display))
+    for seed in (0, 1):
+        frames = make_dslr_radiograph((1200, 1800), seed=seed)
+        result = process_frame(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark],
+                               params=PipelineParams(), keep_intermediates=True)
+        input_display = np.clip(result.intermediates["attenuation"], 0, 1)
+        input_display[~result.region.mask] = 0.0
+        poly = result.region.polygon_xy
+        # GCF on the largest axis-aligned box inside the screen (same crop for all)
+        r0, r1 = int(np.ceil(max(poly[0, 1], poly[1, 1]))) + 4, int(np.floor(min(poly[2, 1], poly[3, 1]))) - 4
+        c0, c1 = int(np.ceil(max(poly[0, 0], poly[3, 0]))) + 4, int(np.floor(min(poly[1, 0], poly[2, 0]))) - 4
+        rows[f"synthetic_seed{seed}"] = compare(f"synthetic_seed{seed}", input_display, result.display,
+                                                frames.truth.flat_patch_rc, np.s_[r0:r1, c0:c1])
+    summary = {"images": rows, "pass": bool(rows) and all(r["pass"] for r in rows.values())}
+    record("eval_contrast", summary)
+    return 0 if summary["pass"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

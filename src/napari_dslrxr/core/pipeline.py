@@ -1,0 +1,464 @@
+"""The whole chain, from a camera frame to a display-ready radiograph.
+
+Stages follow the target paper's order: on the colour image (i) impulse removal, (ii) flat
+field per channel, (iii) screen region and value-of-interest scaling, (iv) optional
+deblurring (only with a PSF kernel); then on grey, in the log (attenuation) domain, (v)
+dynamic-range / latitude reduction and (vi) multiscale contrast, finished by the sigmoid
+display curve.
+
+:func:`run_pipeline` is a generator: it yields ``(done, total)`` after each stage (the name of
+stage ``done`` is ``PIPELINE_STAGES[done - 1]``) and returns a :class:`PipelineResult`.
+:func:`process_frame` runs it to completion. :func:`run_file` reads a file, runs the chain
+and writes the outputs (16-bit TIFF, PNG preview, optional DICOM DX), each with a JSON
+sidecar (parameters, version, input checksums, stage timings).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .contrast import enhance_contrast
+from .dynamic_range import reduce_dynamic_range, sigmoid_lut
+from .errors import InputError, OutputError
+from .flatfield import FlatReference, apply_flat_field, prepare_flat_reference
+from .params import PipelineParams, params_to_toml, validate_params
+from .region import Region, detect_screen, polygon_mask, rectify, voi_window
+
+#: Stage names, in the order their progress steps are yielded.
+PIPELINE_STAGES = ("impulse", "flatfield", "region", "deblur", "grey_log", "dynamic_range", "contrast", "display")
+
+
+@dataclass
+class PipelineResult:
+    """What a pipeline run produced.
+
+    Attributes
+    ----------
+    display : ndarray, float32, (H, W)
+        Display-ready radiograph in [0, 1] (after the sigmoid curve).
+    region : Region
+        Screen mask and corners (in the input frame's coordinates).
+    voi_window : (float, float)
+        Attenuation (log) values mapped to 0 and 1.
+    timings_s : dict
+        Wall time of each stage, seconds.
+    results : dict
+        Numbers worth keeping (pulse rate, gain, flat-field statistics, stage notes).
+    intermediates : dict
+        Named intermediate images when ``keep_intermediates=True`` (``"impulse"``,
+        ``"flatfield"``, ``"attenuation"``, ``"dynamic_range"``, ``"contrast"``).
+    params : PipelineParams
+    """
+
+    display: np.ndarray
+    region: Region
+    voi_window: tuple[float, float]
+    timings_s: dict = field(default_factory=dict)
+    results: dict = field(default_factory=dict)
+    intermediates: dict = field(default_factory=dict)
+    params: PipelineParams | None = None
+
+    def display_uint16(self) -> np.ndarray:
+        """The display image scaled to 0..65535 (uint16)."""
+        return to_uint16(self.display)
+
+
+def to_uint16(display: np.ndarray) -> np.ndarray:
+    """[0, 1] float -> uint16 with rounding."""
+    out = np.clip(display, 0.0, 1.0) * np.float32(65535.0)
+    out += 0.5
+    return out.astype(np.uint16)
+
+
+def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> np.ndarray:
+    impulse = params.impulse
+    passes = [getattr(impulse, n, 0) for n in ("passes_h", "passes_s", "passes_v", "passes_grey")]
+    if not any(passes):
+        results["impulse"] = "skipped (all passes 0)"
+        return image
+    try:
+        from .impulse import remove_impulses
+    except ImportError:  # pragma: no cover - the module ships with the package
+        results["impulse"] = "skipped (impulse module not available)"
+        return image
+    res = remove_impulses(image, impulse)
+    masks = getattr(res, "masks", {}) or {}
+    results["impulse"] = {
+        "pulse_pixels": {k: int(np.count_nonzero(v)) for k, v in masks.items()},
+        "gain": getattr(res, "gain", None),
+        "pulse_rate": getattr(res, "pulse_rate", None),
+    }
+    return res.image
+
+
+def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, params: PipelineParams,
+                  results: dict) -> np.ndarray:
+    from .deconvolution import deconvolve
+
+    # scale each channel to about [0, 1] over the region (the solver's expected range)
+    chans = colour if colour.ndim == 3 else colour[..., None]
+    scales = []
+    for c in range(chans.shape[2]):
+        sample = chans[..., c][mask] if mask.any() else chans[..., c].ravel()
+        scales.append(max(float(np.percentile(sample, 99.5)), 1e-6))
+    scale = np.asarray(scales, np.float32)
+    normalised = chans / scale
+    out = deconvolve(normalised if colour.ndim == 3 else normalised[..., 0], kernel,
+                     method=params.deblur.method, reg=params.deblur.reg)
+    out = (out if out.ndim == 3 else out[..., None]) * scale
+    results["deblur"] = {"kernel_shape": list(kernel.shape), "method": params.deblur.method,
+                         "reg": params.deblur.reg}
+    return out if colour.ndim == 3 else out[..., 0]
+
+
+def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: Sequence[np.ndarray] = (),
+                 black_level=None, psf_kernel: np.ndarray | None = None,
+                 params: PipelineParams | None = None, reference: FlatReference | None = None,
+                 keep_intermediates: bool = False) -> Generator[tuple[int, int], None, PipelineResult]:
+    """Run the six stages on one frame, yielding ``(done, total)`` after each stage.
+
+    Parameters
+    ----------
+    image : ndarray, (H, W, 3) or (H, W)
+        Linear camera frame in counts (uint16 or float); never gamma-encoded.
+    flats, darks : sequence of ndarray
+        Open-beam and dark frames of the same shape (counts). Optional.
+    black_level : float or sequence, optional
+        Offset per channel when no dark frame is given (default ``params.flatfield.black_level_counts``).
+    psf_kernel : ndarray, optional
+        Blur kernel on the frame's pixel grid; deblurring (stage iv) runs only when given.
+    params : PipelineParams, optional
+    reference : FlatReference, optional
+        A prepared flat-field reference (reuse across a batch); overrides flats/darks.
+    keep_intermediates : bool
+        Keep the intermediate images in the result (memory: several full-size copies).
+
+    Returns
+    -------
+    PipelineResult
+        Via ``StopIteration.value``; use :func:`process_frame` for a plain call.
+
+    Raises
+    ------
+    InputError
+        Wrong shape or dtype, NaN values, or flats/darks not matching the frame.
+    """
+    from .io import validate_image
+
+    params = params or PipelineParams()
+    image = validate_image(image, "image")
+    total = len(PIPELINE_STAGES)
+    timings: dict[str, float] = {}
+    results: dict = {}
+    inter: dict = {}
+    clock = time.perf_counter
+
+    # (i) impulse removal on the colour image (linear counts)
+    t0 = clock()
+    cleaned = _impulse_stage(image, params, results)
+    if keep_intermediates:
+        inter["impulse"] = cleaned
+    timings["impulse"] = clock() - t0
+    yield 1, total
+
+    # (ii) flat field per colour channel
+    t0 = clock()
+    if reference is None:
+        offset = black_level if black_level is not None else params.flatfield.black_level_counts
+        reference = prepare_flat_reference(image.shape, flats=flats, darks=darks, black_level=offset,
+                                           params=params.flatfield)
+    corrected = apply_flat_field(cleaned, reference)
+    del cleaned
+    results["flatfield"] = {"n_flats": reference.n_flats, "reference_pulses_cleaned": reference.cleaned_pulses,
+                            "applied": reference.denominator is not None}
+    if keep_intermediates:
+        inter["flatfield"] = corrected
+    timings["flatfield"] = clock() - t0
+    yield 2, total
+
+    # (iii) screen region (values of interest come after the grey/log conversion)
+    t0 = clock()
+    region = detect_screen(corrected, params.region)
+    results["region"] = {"polygon_xy": region.polygon_xy.round(2).tolist(), "detected": region.detected,
+                         "area_fraction": float(region.mask.mean())}
+    timings["region"] = clock() - t0
+    yield 3, total
+
+    # (iv) optional deblurring, per channel, in linear intensity
+    t0 = clock()
+    if psf_kernel is not None:
+        corrected = _deblur_stage(corrected, region.mask, np.asarray(psf_kernel, np.float32), params, results)
+    else:
+        results["deblur"] = "skipped (no PSF model given)"
+    timings["deblur"] = clock() - t0
+    yield 4, total
+
+    # grey (sum of channels = photon-count weighting), log domain, VOI scaling
+    t0 = clock()
+    grey = corrected.sum(axis=2, dtype=np.float32) if corrected.ndim == 3 else corrected.astype(np.float32)
+    del corrected
+    mask = region.mask
+    if params.region.rectify and region.detected or (params.region.rectify and params.region.polygon_xy):
+        grey = rectify(grey, region.polygon_xy)
+        mask = np.ones(grey.shape, bool)
+    sample = grey[mask] if mask.any() else grey.ravel()
+    floor = max(float(np.percentile(sample[:: max(1, sample.size // 500_000)], 99.5)) * 1e-3, 1e-6)
+    np.maximum(grey, floor, out=grey)
+    attenuation = np.log(grey, out=grey)  # in place: grey is not needed any more
+    if params.output.polarity == "bone_white":
+        np.negative(attenuation, out=attenuation)
+    lo, hi = voi_window(attenuation[mask] if mask.any() else attenuation,
+                        low_percentile=params.region.voi_low_percentile,
+                        high_percentile=params.region.voi_high_percentile,
+                        exclude_direct_exposure=params.region.exclude_direct_exposure)
+    attenuation -= np.float32(lo)
+    attenuation *= np.float32(1.0 / (hi - lo))
+    results["voi_window"] = [lo, hi]
+    if keep_intermediates:
+        inter["attenuation"] = attenuation.copy()
+    timings["grey_log"] = clock() - t0
+    yield 5, total
+
+    # (v) dynamic-range / latitude reduction
+    t0 = clock()
+    compressed = reduce_dynamic_range(attenuation, mask, params.dynamic_range)
+    del attenuation
+    if keep_intermediates:
+        inter["dynamic_range"] = compressed.copy()
+    timings["dynamic_range"] = clock() - t0
+    yield 6, total
+
+    # (vi) multiscale contrast
+    t0 = clock()
+    enhanced = enhance_contrast(compressed, params.contrast, mask)
+    del compressed
+    if keep_intermediates:
+        inter["contrast"] = enhanced.copy()
+    timings["contrast"] = clock() - t0
+    yield 7, total
+
+    # display curve
+    t0 = clock()
+    display = sigmoid_lut(enhanced, params.dynamic_range)
+    del enhanced
+    if not mask.all():
+        display[~mask] = 0.0 if params.output.outside_region == "black" else 1.0
+    timings["display"] = clock() - t0
+    yield 8, total
+    return PipelineResult(display=display, region=region, voi_window=(lo, hi), timings_s=timings,
+                          results=results, intermediates=inter, params=params)
+
+
+def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
+                       mask: np.ndarray | None = None) -> np.ndarray:
+    """Stages v-vi and the display curve on a grey radiograph already in display orientation.
+
+    For radiographs that are already log-scaled and bone-bright (for example CR/DR DICOM
+    after MONOCHROME1 inversion): value-of-interest scaling inside ``mask``, dynamic-range
+    reduction, multiscale contrast and the sigmoid curve.
+
+    Parameters
+    ----------
+    image : ndarray, (H, W)
+        Grey radiograph (any real dtype), higher = brighter on display.
+    params : PipelineParams, optional
+        Uses ``region`` (VOI percentiles), ``dynamic_range`` and ``contrast``.
+    mask : ndarray, bool, optional
+        Region of interest for the statistics; default all pixels.
+
+    Returns
+    -------
+    ndarray, float32, (H, W)
+        Display values in [0, 1].
+    """
+    params = params or PipelineParams()
+    x = np.asarray(image, np.float32).copy()
+    sample = x[mask] if mask is not None else x
+    lo, hi = voi_window(sample, low_percentile=params.region.voi_low_percentile,
+                        high_percentile=params.region.voi_high_percentile,
+                        exclude_direct_exposure=params.region.exclude_direct_exposure)
+    x -= np.float32(lo)
+    x *= np.float32(1.0 / (hi - lo))
+    x = reduce_dynamic_range(x, mask, params.dynamic_range)
+    x = enhance_contrast(x, params.contrast, mask)
+    return sigmoid_lut(x, params.dynamic_range)
+
+
+def drive(gen: Generator, progress: Callable[[int, int], object] | None = None):
+    """Run a progress generator to completion; call ``progress(done, total)`` on each step."""
+    while True:
+        try:
+            step = next(gen)
+        except StopIteration as stop:
+            return stop.value
+        if progress is not None:
+            progress(*step)
+
+
+def process_frame(image: np.ndarray, *, progress: Callable[[int, int], object] | None = None,
+                  **kwargs) -> PipelineResult:
+    """Plain-function form of :func:`run_pipeline` (same keyword arguments)."""
+    return drive(run_pipeline(image, **kwargs), progress)
+
+
+# --------------------------------------------------------------------------- files
+
+
+def output_paths(input_path: str | os.PathLike, out_dir: str | os.PathLike,
+                 params: PipelineParams) -> dict[str, Path]:
+    """The files :func:`run_file` writes for one input (``<stem>_dslrxr.tif`` etc.)."""
+    stem = Path(input_path).stem + "_dslrxr"
+    out_dir = Path(out_dir)
+    paths = {}
+    if params.output.tiff:
+        paths["tiff"] = out_dir / f"{stem}.tif"
+    if params.output.png_preview:
+        paths["png"] = out_dir / f"{stem}.png"
+    if params.output.dicom:
+        paths["dicom"] = out_dir / f"{stem}.dcm"
+    return paths
+
+
+def run_identity(input_files: Sequence[str | os.PathLike], params: PipelineParams, extra: str = "") -> str:
+    """A hex digest of the input files' contents and every parameter (seeds DICOM UIDs)."""
+    from .io import file_sha256
+
+    digest = hashlib.sha256()
+    for path in input_files:
+        digest.update(file_sha256(path).encode())
+    digest.update(params_to_toml(params, comments=False).encode())
+    digest.update(extra.encode())
+    return digest.hexdigest()
+
+
+def preview_uint8(display: np.ndarray, max_side_px: int = 2048) -> np.ndarray:
+    """8-bit preview of a [0, 1] image, area-downsampled so its longest side <= ``max_side_px``."""
+    img = np.clip(display, 0, 1)
+    h, w = img.shape[:2]
+    if max_side_px and max(h, w) > max_side_px:
+        f = max_side_px / max(h, w)
+        img = cv2.resize(img, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
+    return np.round(img * 255).astype(np.uint8)
+
+
+def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Sequence[str | os.PathLike],
+                  params: PipelineParams, pixel_spacing_mm: float | None = None,
+                  patient: dict | None = None, uid_seed: str | None = None) -> list[Path]:
+    """Write the TIFF / PNG / DICOM outputs of a run, each with a JSON sidecar.
+
+    Returns
+    -------
+    list of Path
+        The image files written (sidecars are ``<file>.json``).
+    """
+    from .. import __version__
+    from .io import write_png, write_tiff
+    from .provenance import write_sidecar
+
+    written = []
+    sidecar_results = {**result.results, "voi_window": list(result.voi_window)}
+    description = json.dumps({"software": "napari-dslrxr", "version": __version__, "stage": "run",
+                              "polarity": params.output.polarity}, sort_keys=True)
+    spacing = pixel_spacing_mm or (params.output.pixel_spacing_mm or None)
+    for kind, path in paths.items():
+        if kind == "tiff":
+            write_tiff(path, result.display_uint16(), description=description, inputs=inputs,
+                       resolution_px_per_mm=(1.0 / spacing) if spacing else None)
+        elif kind == "png":
+            write_png(path, preview_uint8(result.display, params.output.preview_max_side_px), inputs=inputs)
+        elif kind == "dicom":
+            from .dicom import write_dicom_dx
+
+            write_dicom_dx(path, result.display_uint16(), pixel_spacing_mm=spacing,
+                           uid_seed=uid_seed or run_identity(inputs, params), patient=patient,
+                           series_description="napari-dslrxr processed radiograph", inputs=inputs)
+        else:  # pragma: no cover
+            raise OutputError(f"{path}: unknown output kind {kind!r}")
+        write_sidecar(path, stage="run", parameters=params, inputs=inputs, timings_s=result.timings_s,
+                      results=sidecar_results)
+        written.append(path)
+    return written
+
+
+def load_frames(paths: Sequence[str | os.PathLike]) -> list[np.ndarray]:
+    """Read reference frames (flats, darks) as arrays in counts."""
+    from .io import read_image
+
+    return [read_image(p).data for p in paths]
+
+
+def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
+             params: PipelineParams | None = None, flat_paths: Sequence[str | os.PathLike] = (),
+             dark_paths: Sequence[str | os.PathLike] = (), psf_path: str | os.PathLike | None = None,
+             source_to_object_mm: float | None = None, source_to_detector_mm: float | None = None,
+             reference: FlatReference | None = None, patient: dict | None = None,
+             progress: Callable[[int, int], object] | None = None) -> list[Path]:
+    """Read one frame, run the pipeline and write its outputs (with sidecars).
+
+    Parameters
+    ----------
+    input_path : path-like
+        Camera raw, TIFF, PNG or DICOM.
+    out_dir : path-like
+        Existing output folder.
+    params : PipelineParams, optional
+    flat_paths, dark_paths : sequence of path-like
+        Reference frames; ignored when ``reference`` is given.
+    psf_path : path-like, optional
+        PSF model JSON (:func:`napari_dslrxr.core.psf.load_psf`); with the two distances it
+        turns on deblurring.
+    source_to_object_mm, source_to_detector_mm : float, optional
+    reference : FlatReference, optional
+        Prepared flat reference (a batch prepares it once).
+    patient : dict, optional
+        DICOM patient fields supplied by the user (``PatientName``, ``PatientID``...).
+
+    Returns
+    -------
+    list of Path
+        Files written.
+    """
+    from .errors import ParameterError
+    from .io import read_image
+
+    params = validate_params(params or PipelineParams())
+    loaded = read_image(input_path)
+    black = None
+    if loaded.format == "raw":
+        black = 0.0  # rawpy's linear RGB has the black level subtracted already
+    kernel = None
+    if psf_path is not None:
+        if source_to_object_mm is None or source_to_detector_mm is None:
+            raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
+        from .psf import load_psf
+
+        kernel = load_psf(psf_path).kernel(source_to_object_mm, source_to_detector_mm)
+    if reference is None:
+        flats = load_frames(flat_paths)
+        darks = load_frames(dark_paths)
+        for name, frames in (("flat", flats), ("dark", darks)):
+            for p, f in zip(flat_paths if name == "flat" else dark_paths, frames, strict=True):
+                if f.shape != loaded.data.shape:
+                    raise InputError(p, f"{name} frame shape {f.shape} differs from {input_path}'s {loaded.data.shape}")
+        offset = black if black is not None else params.flatfield.black_level_counts
+        reference = prepare_flat_reference(loaded.data.shape, flats=flats, darks=darks, black_level=offset,
+                                           params=params.flatfield)
+    result = process_frame(loaded.data, params=params, reference=reference, psf_kernel=kernel, progress=progress)
+    inputs = [Path(input_path), *map(Path, flat_paths), *map(Path, dark_paths)]
+    if psf_path is not None:
+        inputs.append(Path(psf_path))
+    spacing = loaded.metadata.get("pixel_spacing_mm")
+    spacing = float(spacing[0]) if spacing else None
+    extra = f"{source_to_object_mm}|{source_to_detector_mm}|{json.dumps(patient or {}, sort_keys=True)}"
+    paths = output_paths(input_path, out_dir, params)
+    return write_outputs(result, paths, inputs=inputs, params=params, pixel_spacing_mm=spacing,
+                         patient=patient, uid_seed=run_identity(inputs, params, extra))

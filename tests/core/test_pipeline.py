@@ -1,0 +1,114 @@
+"""The whole chain on synthetic DSLR frames: stages, progress, region, outputs, determinism."""
+
+import json
+
+import numpy as np
+import pytest
+
+from napari_dslrxr.core.errors import InputError
+from napari_dslrxr.core.io import read_image, write_tiff
+from napari_dslrxr.core.params import PipelineParams
+from napari_dslrxr.core.phantom import make_dslr_radiograph
+from napari_dslrxr.core.pipeline import PIPELINE_STAGES, process_frame, run_file, run_pipeline
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return make_dslr_radiograph((320, 480), seed=5)
+
+
+def test_generator_yields_every_stage_and_returns_result(frames):
+    gen = run_pipeline(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark], keep_intermediates=True)
+    steps = []
+    while True:
+        try:
+            steps.append(next(gen))
+        except StopIteration as stop:
+            result = stop.value
+            break
+    n = len(PIPELINE_STAGES)
+    assert steps == [(i, n) for i in range(1, n + 1)]
+    assert set(result.timings_s) == set(PIPELINE_STAGES)
+    assert result.display.shape == frames.raw_rgb.shape[:2] and result.display.dtype == np.float32
+    assert 0 <= result.display.min() and result.display.max() <= 1
+    assert {"impulse", "flatfield", "attenuation", "dynamic_range", "contrast"} <= set(result.intermediates)
+    iou = (result.region.mask & frames.truth.screen_mask).sum() / (result.region.mask | frames.truth.screen_mask).sum()
+    assert iou > 0.95
+
+
+def test_output_shows_object_truth_and_is_bone_white(frames):
+    result = process_frame(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark])
+    # warp the true attenuation into the frame and compare ranks inside the region
+    import cv2
+
+    h, w = frames.raw_rgb.shape[:2]
+    mu = cv2.warpPerspective(frames.truth.attenuation, frames.truth.homography, (w, h))
+    inside = result.region.mask & (mu > 0.5)  # object (not direct exposure)
+    corr = np.corrcoef(mu[inside], result.display[inside])[0, 1]
+    assert corr > 0.7  # measured 0.75; more attenuation -> brighter, after all the non-linear stages
+    # pulses are gone: no isolated bright outliers at true pulse positions inside the object
+    pulses = frames.truth.pulse_mask.any(axis=2) & inside
+    smooth = cv2.medianBlur(np.round(result.display * 255).astype(np.uint8), 5).astype(np.float32) / 255
+    assert np.median(np.abs(result.display[pulses] - smooth[pulses])) < 0.03
+
+
+def test_flat_field_stage_matters(frames):
+    # without the flat, vignetting + heel leave a large-area trend in the direct-exposure rim
+    params = PipelineParams()
+    with_flat = process_frame(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark], params=params,
+                              keep_intermediates=True).intermediates["attenuation"]
+    no_flat = process_frame(frames.raw_rgb, darks=[frames.dark], params=params,
+                            keep_intermediates=True).intermediates["attenuation"]
+    r0, c0, r1, c1 = frames.truth.flat_patch_rc
+    # the uniform soft-tissue patch vs the same tissue elsewhere is not testable simply; use the
+    # spread of the attenuation over the screen rim (uniform direct exposure in truth)
+    import cv2
+
+    h, w = frames.raw_rgb.shape[:2]
+    mu = cv2.warpPerspective(frames.truth.attenuation, frames.truth.homography, (w, h))
+    rim = (mu > 0) & (mu < 0.15) & frames.truth.screen_mask
+    rim &= cv2.erode(frames.truth.screen_mask.astype(np.uint8), np.ones((25, 25), np.uint8)).astype(bool)
+    assert np.std(with_flat[rim]) < 0.5 * np.std(no_flat[rim])
+
+
+def test_run_file_writes_outputs_sidecars_and_is_deterministic(tmp_path, frames):
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    raw = write_tiff(inputs / "shot.tif", frames.raw_rgb)
+    flat = write_tiff(inputs / "flat.tif", frames.flat)
+    dark = write_tiff(inputs / "dark.tif", frames.dark)
+    params = PipelineParams()
+    params.output.dicom = True
+    outs = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        out.mkdir()
+        written = run_file(raw, out, params=params, flat_paths=[flat], dark_paths=[dark])
+        assert sorted(p.name for p in written) == ["shot_dslrxr.dcm", "shot_dslrxr.png", "shot_dslrxr.tif"]
+        outs.append(written)
+    for a, b in zip(*outs, strict=True):
+        assert a.read_bytes() == b.read_bytes()
+        side = json.loads(a.with_name(a.name + ".json").read_text())
+        assert side["stage"] == "run" and len(side["inputs"]) == 3
+        assert set(side["timings_s"]) == set(PIPELINE_STAGES)
+        assert side["parameters"]["contrast"]["detail_contrast"] == params.contrast.detail_contrast
+    tif = read_image(outs[0][2]).data
+    assert tif.dtype == np.uint16 and tif.shape == frames.raw_rgb.shape[:2] and tif.max() > 60000
+
+
+def test_bad_reference_shape_is_one_line_error(tmp_path, frames):
+    raw = write_tiff(tmp_path / "shot.tif", frames.raw_rgb)
+    flat = write_tiff(tmp_path / "flat.tif", frames.flat[:100])
+    with pytest.raises(InputError, match="flat frame shape"):
+        run_file(raw, tmp_path, flat_paths=[flat])
+
+
+def test_deblur_stage_runs_with_a_kernel(frames):
+    pytest.importorskip("napari_dslrxr.core.deconvolution")
+    small = make_dslr_radiograph((128, 160), seed=1)
+    yy, xx = np.mgrid[-4:5, -4:5]
+    kernel = np.exp(-(xx**2 + yy**2) / (2 * 1.8**2)).astype(np.float32)
+    kernel /= kernel.sum()
+    result = process_frame(small.raw_rgb, flats=[small.flat], darks=[small.dark], psf_kernel=kernel)
+    assert isinstance(result.results["deblur"], dict) and result.timings_s["deblur"] > 0
+    assert np.isfinite(result.display).all()
