@@ -85,6 +85,7 @@ def guarded(context: str) -> Callable[[Callable], Callable]:
 def run_in_worker(work: Callable, *args: Any, desc: str,
                   on_returned: Callable[[Any], None],
                   on_finished: Callable[[], None] | None = None,
+                  progress_bar: bool = True,
                   **kwargs: Any):
     """Run ``work(*args, **kwargs)`` in a napari thread worker with a progress bar.
 
@@ -100,6 +101,8 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
         Called on the GUI thread with the result; exceptions in it become notifications.
     on_finished : callable, optional
         Called on the GUI thread after success, error or cancel (e.g. to re-enable a button).
+    progress_bar : bool
+        Show a bar in napari's activity dock (off for sub-second live previews).
 
     Returns
     -------
@@ -113,7 +116,9 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
 
     worker = create_worker(work, *args, _start_thread=False, _ignore_errors=True, **kwargs)
     worker.dslrxr_finished = False
-    if isinstance(worker, GeneratorWorker):
+    if not progress_bar:
+        pbar = None
+    elif isinstance(worker, GeneratorWorker):
         pbar = cancelable_progress(total=0, desc=desc, cancel_callback=worker.quit)
 
         def _yielded(value: Any) -> None:
@@ -136,7 +141,8 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
             on_returned(result)
 
     def _finished() -> None:
-        pbar.close()
+        if pbar is not None:
+            pbar.close()
         worker.dslrxr_finished = True  # set on the GUI thread after the result was shown
         if on_finished is not None:
             with reported_errors(desc):
@@ -188,19 +194,58 @@ def same_geometry(reference: napari.layers.Layer) -> dict:
     return {"scale": tuple(reference.scale[-2:]), "translate": tuple(reference.translate[-2:])}
 
 
-def visible_region(layer: napari.layers.Layer, shape: tuple[int, ...] | None = None,
-                   *, margin_px: int = 0) -> tuple[slice, slice]:
-    """Row and column slices of ``layer``'s data currently visible on the canvas.
+def visible_region(viewer: napari.Viewer, layer: napari.layers.Layer,
+                   shape: tuple[int, ...] | None = None, *, margin_px: int = 0) -> tuple[slice, slice]:
+    """Row and column slices of ``layer``'s data visible on the canvas (2-D view).
 
-    Uses ``layer.corner_pixels`` (data coordinates of the drawn region, updated by napari
-    on every camera change), grown by ``margin_px`` and clipped to the image.
+    Computed from the camera (centre, zoom) and the canvas size, so it is current as soon as
+    the camera changes (``layer.corner_pixels`` only follows at the next redraw). Assumes the
+    layer is placed by scale and translate only (no rotation or shear). Grown by
+    ``margin_px`` and clipped to the image.
     """
     shape = tuple(shape or np.shape(layer.data))[:2]
-    corners = np.asarray(layer.corner_pixels)
-    r0, c0 = (int(v) for v in corners[0][-2:]) if corners.size else (0, 0)
-    r1, c1 = (int(v) + 1 for v in corners[1][-2:]) if corners.size else shape
-    if r1 - r0 < 2 or c1 - c0 < 2:  # not drawn yet: use the whole image
-        r0, c0, (r1, c1) = 0, 0, shape
-    r0, c0 = max(0, r0 - margin_px), max(0, c0 - margin_px)
-    r1, c1 = min(shape[0], r1 + margin_px), min(shape[1], c1 + margin_px)
+    height_px, width_px = viewer.canvas.size
+    zoom = float(viewer.camera.zoom)
+    centre = np.asarray(viewer.camera.center[-2:], float)
+    half = np.array([height_px, width_px], float) / (2.0 * zoom)
+    scale = np.asarray(layer.scale[-2:], float)
+    translate = np.asarray(layer.translate[-2:], float)
+    low = (centre - half - translate) / scale
+    high = (centre + half - translate) / scale
+    r0 = int(np.clip(np.floor(low[0] + 0.5) - margin_px, 0, shape[0] - 1))
+    c0 = int(np.clip(np.floor(low[1] + 0.5) - margin_px, 0, shape[1] - 1))
+    r1 = int(np.clip(np.ceil(high[0] + 0.5) + margin_px, r0 + 1, shape[0]))
+    c1 = int(np.clip(np.ceil(high[1] + 0.5) + margin_px, c0 + 1, shape[1]))
     return slice(r0, r1), slice(c0, c1)
+
+
+# --------------------------------------------------------------------------- live preview
+
+
+def debounced(owner: Any, fn: Callable[[], None], timeout_ms: int) -> Callable[..., None]:
+    """A trigger that calls ``fn()`` once, ``timeout_ms`` after the last of a burst of calls.
+
+    The timer belongs to ``owner.native`` (a magicgui widget), so it dies with the widget; a
+    trigger arriving while napari tears the widget down (layer lists emptied) is ignored.
+    """
+    from superqt.utils import qdebounced
+
+    def call() -> None:
+        try:
+            fn()
+        except RuntimeError as exc:  # the Qt side of the widget is already deleted
+            if "deleted" not in str(exc):
+                raise
+
+    throttled = qdebounced(call, timeout_ms, parent=owner.native)
+
+    def trigger(*_args: Any) -> None:
+        try:
+            throttled()
+        except RuntimeError as exc:
+            if "deleted" not in str(exc):
+                raise
+
+    trigger.cancel = throttled.cancel  # type: ignore[attr-defined]
+    trigger.flush = throttled.flush  # type: ignore[attr-defined]
+    return trigger

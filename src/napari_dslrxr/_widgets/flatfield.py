@@ -1,0 +1,140 @@
+"""Flat-field widget over :mod:`napari_dslrxr.core.flatfield`.
+
+The user picks the radiograph, the flat (open beam) and optionally the dark frame, each as a
+layer; a file chosen with the "flat file"/"dark file" pickers is read with the core reader and
+added as a layer first, so layers and files take the same path. With "live preview" on, every
+change of a parameter or of a picked layer recomputes ``"<layer> flat-fielded"`` (debounced,
+in a thread worker); "Apply" does the same on demand.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from magicgui.widgets import CheckBox, Container, FileEdit, FloatSpinBox, Label, PushButton, create_widget
+
+from ..core.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
+from ..core.io import read_image
+from ..core.errors import ParameterError
+from ._common import debounced, guarded, notify_error, run_in_worker, same_geometry, show_layer
+from ._registry import register_stage_widget
+
+if TYPE_CHECKING:
+    import napari
+
+_DEBOUNCE_MS = 150
+
+
+def correct_with_layers(image: np.ndarray, flat: np.ndarray | None, dark: np.ndarray | None,
+                        params: FlatFieldParams) -> tuple[np.ndarray, int]:
+    """Core call of the widget: prepare the reference and apply it (runs in the worker).
+
+    Returns the corrected float32 counts and the number of pulse pixels cleaned from the
+    reference frames.
+    """
+    reference = prepare_flat_reference(image.shape, flats=[] if flat is None else [flat],
+                                       darks=[] if dark is None else [dark], params=params)
+    return apply_flat_field(image, reference), reference.cleaned_pulses
+
+
+class FlatFieldWidget(Container):
+    """Flat-field correct an image layer with flat and dark layers (or files)."""
+
+    SECTION = "flatfield"
+
+    def __init__(self, viewer: napari.viewer.Viewer):
+        self._viewer = viewer
+        self._image = create_widget(annotation="napari.layers.Image", label="radiograph")
+        self._flat = create_widget(annotation="napari.layers.Image | None", label="flat (open beam)")
+        self._dark = create_widget(annotation="napari.layers.Image | None", label="dark (optional)")
+        self._flat_file = FileEdit(mode="r", label="or flat file", filter="*.tif *.tiff *.dcm *.dng *.cr2 *.nef *.arw")
+        self._dark_file = FileEdit(mode="r", label="or dark file", filter="*.tif *.tiff *.dcm *.dng *.cr2 *.nef *.arw")
+        defaults = FlatFieldParams()
+        self._smoothing = FloatSpinBox(value=defaults.flat_smoothing_px, min=0.0, max=200.0, step=0.5,
+                                       label="flat smoothing (px)")
+        self._min_fraction = FloatSpinBox(value=defaults.min_flat_fraction, min=0.0, max=1.0, step=0.01,
+                                          label="min flat fraction")
+        self._clean = CheckBox(value=defaults.clean_flat_pulses, label="clean pulses in flat/dark")
+        self._preview = CheckBox(value=False, label="live preview")
+        self._apply = PushButton(text="Apply flat field")
+        self._readout = Label(value="")
+        super().__init__(widgets=[self._image, self._flat, self._flat_file, self._dark, self._dark_file,
+                                  self._smoothing, self._min_fraction, self._clean, self._preview,
+                                  self._apply, self._readout])
+        self._extra: dict = {}
+        self.result: np.ndarray | None = None
+        self._worker = None
+        self._flat_file.changed.connect(lambda: self._load_file(self._flat_file.value, self._flat, "flat"))
+        self._dark_file.changed.connect(lambda: self._load_file(self._dark_file.value, self._dark, "dark"))
+        self._apply.changed.connect(self.run)
+        self._debounced_preview = debounced(self, self._preview_if_on, _DEBOUNCE_MS)
+        for widget in (self._image, self._flat, self._dark, self._smoothing, self._min_fraction,
+                       self._clean, self._preview):
+            widget.changed.connect(self._debounced_preview)
+        register_stage_widget(viewer, self)
+
+    # -- parameters (TOML section [flatfield]) ----------------------------------------------
+    def get_params(self) -> FlatFieldParams:
+        values = dict(self._extra)
+        values.update(flat_smoothing_px=float(self._smoothing.value),
+                      min_flat_fraction=float(self._min_fraction.value),
+                      clean_flat_pulses=bool(self._clean.value))
+        return FlatFieldParams(**values)
+
+    def set_params(self, params: FlatFieldParams) -> None:
+        values = asdict(params)
+        self._smoothing.value = values.pop("flat_smoothing_px")
+        self._min_fraction.value = values.pop("min_flat_fraction")
+        self._clean.value = values.pop("clean_flat_pulses")
+        self._extra = values
+
+    # -- files become layers ---------------------------------------------------------------------
+    def _load_file(self, path, combo, role: str) -> None:
+        path = Path(path) if path else None
+        if path is None or not path.is_file():
+            return
+        try:
+            loaded = read_image(path, with_raw_planes=False)
+        except Exception as exc:  # noqa: BLE001
+            notify_error(exc, context=f"{role} file")
+            return
+        layer = show_layer(self._viewer, loaded.data, f"{role}: {path.stem}", "image",
+                           rgb=loaded.is_colour, visible=False)
+        combo.reset_choices()
+        combo.value = layer
+
+    # -- actions ---------------------------------------------------------------------------------
+    def _preview_if_on(self) -> None:
+        if self._preview.value and self._image.value is not None and self._flat.value is not None:
+            self.run()
+
+    @guarded("flat field")
+    def run(self):
+        """Correct the radiograph in a thread worker; return the worker (None if not started)."""
+        layer = self._image.value
+        if layer is None:
+            raise ParameterError("choose the radiograph layer")
+        if self._flat.value is None:
+            raise ParameterError("choose a flat (open-beam) layer or file")
+        if self._worker is not None and not getattr(self._worker, "dslrxr_finished", True):
+            self._worker.quit()  # superseded by newer parameters; its result is ignored
+        image = np.asarray(layer.data)
+        flat = np.asarray(self._flat.value.data)
+        dark = None if self._dark.value is None else np.asarray(self._dark.value.data)
+        params = self.get_params()
+        self._readout.value = "running..."
+        worker = run_in_worker(correct_with_layers, image, flat, dark, params, desc="flat field",
+                               on_returned=lambda out: self._show(layer, out))
+        self._worker = worker
+        return worker
+
+    def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int]) -> None:
+        corrected, cleaned = out
+        self.result = corrected
+        show_layer(self._viewer, corrected, f"{layer.name} flat-fielded", "image",
+                   rgb=bool(getattr(layer, "rgb", False)) and corrected.ndim == 3, **same_geometry(layer))
+        self._readout.value = (f"corrected {corrected.shape[1]}x{corrected.shape[0]} px; "
+                               f"{cleaned} pulse px cleaned in the reference frames")

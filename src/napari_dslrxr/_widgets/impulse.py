@@ -1,0 +1,117 @@
+"""Impulse-noise (zinger) removal widget over :func:`napari_dslrxr.core.impulse.remove_impulses`.
+
+The user picks an image layer, the colour space and the passes per channel (H, S, V for
+colour, grey for grey images). The cleaned image appears as ``"<layer> cleaned"`` and the
+detected pulses of each channel as a Labels layer ``"<layer> pulses <channel>"`` (one label
+value per channel, so noise patches of H, S and V can be compared by colour). Pulse counts,
+the estimated pulse rate and the estimated Poisson gain are shown under the button.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from magicgui.widgets import ComboBox, Container, Label, PushButton, SpinBox, create_widget
+
+from ..core.impulse import ImpulseParams, ImpulseResult, remove_impulses
+from ..core.errors import ParameterError
+from ._common import guarded, run_in_worker, same_geometry, show_layer
+from ._registry import register_stage_widget
+
+if TYPE_CHECKING:
+    import napari
+
+#: Label value of each channel's pulse mask (distinct colours in napari's label colormap).
+CHANNEL_LABEL = {"grey": 1, "H": 1, "S": 2, "V": 3, "R": 1, "G1": 2, "G2": 3, "B": 4}
+
+
+def pulse_summary(result: ImpulseResult) -> str:
+    """One line per channel: pulse count, pulse rate and gain (for the widget's read-out)."""
+    lines = []
+    for name, mask in result.masks.items():
+        gain = result.gain.get(name, float("nan"))
+        rate = result.pulse_rate.get(name, float("nan"))
+        gain_text = "n/a (ratio channel)" if not np.isfinite(gain) else f"{gain:.4g} counts/quantum"
+        rate_text = "n/a" if not np.isfinite(rate) else f"{rate:.2e}"
+        lines.append(f"{name}: {int(np.count_nonzero(mask))} px replaced, pulse rate {rate_text}, "
+                     f"gain {gain_text}")
+    lines.append(f"any channel: {int(np.count_nonzero(result.any_mask()))} px")
+    return "\n".join(lines)
+
+
+class ImpulseWidget(Container):
+    """Remove impulse noise from an image layer; show per-channel pulse masks as Labels layers."""
+
+    SECTION = "impulse"
+
+    def __init__(self, viewer: napari.viewer.Viewer):
+        self._viewer = viewer
+        self._image = create_widget(annotation="napari.layers.Image", label="image")
+        self._space = ComboBox(choices=["auto", "hsv", "grey"], value="auto", label="colour space",
+                               tooltip="auto: HSV for colour images, grey for grey ones")
+        defaults = ImpulseParams()
+        self._passes = {
+            name: SpinBox(value=getattr(defaults, f"passes_{name.lower()}"), min=0, max=10,
+                          label=f"passes {name}", tooltip=f"detect-and-replace passes on {name}")
+            for name in ("H", "S", "V", "grey")
+        }
+        self._window = ComboBox(choices=[3, 5], value=defaults.window_px, label="median window (px)")
+        self._run_button = PushButton(text="Remove impulses")
+        self._readout = Label(value="")
+        super().__init__(widgets=[self._image, self._space, *self._passes.values(), self._window,
+                                  self._run_button, self._readout])
+        self._extra: dict = {}
+        self.result: ImpulseResult | None = None
+        self._run_button.changed.connect(self.run)
+        register_stage_widget(viewer, self)
+
+    # -- parameters (shared TOML section [impulse]) --------------------------------------
+    def get_params(self) -> ImpulseParams:
+        """The widget's values as core parameters (other fields as last loaded)."""
+        values = dict(self._extra)
+        values.update({f"passes_{k.lower()}": int(w.value) for k, w in self._passes.items()})
+        values["window_px"] = int(self._window.value)
+        return ImpulseParams(**values)
+
+    def set_params(self, params: ImpulseParams) -> None:
+        """Show ``params`` in the widget (fields without a control are kept for saving)."""
+        from dataclasses import asdict
+
+        values = asdict(params)
+        for name, widget in self._passes.items():
+            widget.value = values.pop(f"passes_{name.lower()}")
+        self._window.value = values.pop("window_px")
+        self._extra = values
+
+    # -- action ----------------------------------------------------------------------------
+    @guarded("impulse removal")
+    def run(self):
+        """Start impulse removal in a thread worker; return the worker (None if nothing to do)."""
+        layer = self._image.value
+        if layer is None:
+            raise ParameterError("choose an image layer first")
+        image = np.asarray(layer.data)
+        params = self.get_params()
+        space = self._space.value
+        self._run_button.enabled = False
+        self._readout.value = "running..."
+        return run_in_worker(remove_impulses, image, params, space=space,
+                             desc="impulse removal", on_returned=lambda r: self._show(layer, r),
+                             on_finished=self._done)
+
+    def _done(self) -> None:
+        self._run_button.enabled = True
+        if self._readout.value == "running...":
+            self._readout.value = "failed or cancelled (see notifications)"
+
+    def _show(self, layer: napari.layers.Image, result: ImpulseResult) -> None:
+        self.result = result
+        geometry = same_geometry(layer)
+        show_layer(self._viewer, result.image, f"{layer.name} cleaned", "image",
+                   rgb=bool(getattr(layer, "rgb", False)), **geometry)
+        for name, mask in result.masks.items():
+            labels = mask.astype(np.uint8) * np.uint8(CHANNEL_LABEL.get(name, 1))
+            show_layer(self._viewer, labels, f"{layer.name} pulses {name}", "labels",
+                       opacity=0.8, **geometry)
+        self._readout.value = pulse_summary(result)

@@ -1,0 +1,48 @@
+"""``dslrxr view``: files checked first, then opened with the plugin's reader, widgets docked."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from napari_dslrxr._cli.view import plugin_widget_names
+from napari_dslrxr.cli import main
+from napari_dslrxr.core.io import write_tiff
+
+
+def test_missing_file_is_a_one_line_error_before_any_window(tmp_path, capsys, monkeypatch):
+    import napari
+
+    monkeypatch.setattr(napari, "Viewer", lambda *a, **k: pytest.fail("no window for a bad file"))
+    assert main(["view", str(tmp_path / "missing.tif")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("dslrxr: error:") and "missing.tif: no such file" in err
+    assert "\n" not in err
+
+
+def test_widget_names_come_from_the_manifest():
+    names = plugin_widget_names()
+    assert "Impulse removal" in names and len(names) == len(set(names))
+
+
+@pytest.mark.gui
+def test_view_opens_files_and_docks_every_widget(make_napari_viewer, tmp_path, monkeypatch, rng):
+    import napari
+
+    image = rng.integers(0, 4000, (48, 64)).astype(np.uint16)
+    path = write_tiff(tmp_path / "chest.tif", image)
+    viewers = []
+
+    def fake_viewer(**kwargs):
+        viewers.append(make_napari_viewer(**kwargs))
+        return viewers[-1]
+
+    monkeypatch.setattr(napari, "Viewer", fake_viewer)
+    monkeypatch.setattr(napari, "run", lambda *a, **k: None)
+    assert main(["view", str(path)]) == 0
+    (viewer,) = viewers
+    assert [layer.name for layer in viewer.layers] == ["chest"]
+    np.testing.assert_array_equal(viewer.layers["chest"].data, image)
+    docked = set(viewer.window.dock_widgets)
+    for name in plugin_widget_names():
+        assert any(name in key for key in docked), (name, docked)
