@@ -40,18 +40,21 @@ def main(argv: list[str] | None = None) -> int:
     from .core.pipeline import run_file
 
     argv = sys.argv[1:] if argv is None else argv
+    small = "--small" in argv  # a quick 384x576 run (tests)
+    argv = [a for a in argv if a != "--small"]
     if len(argv) != 1:
-        print("usage: python -m napari_dslrxr.demo OUTDIR", file=sys.stderr)
+        print("usage: python -m napari_dslrxr.demo OUTDIR [--small]", file=sys.stderr)
         return 2
     out = Path(argv[0])
+    shape = (384, 576) if small else (1200, 1800)
     inputs = out / "input"
     inputs.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    frames = make_dslr_radiograph((1200, 1800), seed=0)
+    frames = make_dslr_radiograph(shape, seed=0)
     paths = {}
     for name, arr in (("radiograph", frames.raw_rgb), ("flat", frames.flat), ("dark", frames.dark)):
         paths[name] = write_tiff(inputs / f"{name}.tif", arr)
-    print(f"generated a 1200x1800 DSLR-like frame with flat and dark in {time.perf_counter() - t0:.1f} s")
+    print(f"generated a {shape[0]}x{shape[1]} DSLR-like frame with flat and dark in {time.perf_counter() - t0:.1f} s")
     params = PipelineParams()
     params.output.dicom = True
     params.output.pixel_spacing_mm = 0.2

@@ -1,9 +1,136 @@
-"""``dslrxr`` sub-commands for this area (see the module docstring of napari_dslrxr._cli)."""
+"""``dslrxr run`` (the whole pipeline over a batch of files) and ``dslrxr params``."""
 
 from __future__ import annotations
 
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
 import typer
+
+from ..core.errors import DslrxrError, ParameterError
+
+
+def _process_one(job: dict) -> tuple[str, bool, str, float]:
+    """Worker: run one input; returns (input, ok, message, seconds). Picklable for processes."""
+    from ..core.params import params_from_dict
+    from ..core.pipeline import run_file
+
+    t0 = time.perf_counter()
+    try:
+        params = params_from_dict(job["params"])
+        written = run_file(job["input"], job["out_dir"], params=params, flat_paths=job["flats"],
+                           dark_paths=job["darks"], psf_path=job["psf"],
+                           source_to_object_mm=job["sod"], source_to_detector_mm=job["sdd"],
+                           patient=job["patient"])
+        return job["input"], True, f"wrote {len(written)} file(s)", time.perf_counter() - t0
+    except DslrxrError as exc:
+        return job["input"], False, str(exc), time.perf_counter() - t0
+    except MemoryError:
+        return job["input"], False, "out of memory", time.perf_counter() - t0
+
+
+def _expand_inputs(inputs: list[Path]) -> list[Path]:
+    from ..core.io import DICOM_EXTENSIONS, PNG_EXTENSIONS, RAW_EXTENSIONS, TIFF_EXTENSIONS
+
+    known = RAW_EXTENSIONS | TIFF_EXTENSIONS | PNG_EXTENSIONS | DICOM_EXTENSIONS
+    files: list[Path] = []
+    for item in inputs:
+        if item.is_dir():
+            files.extend(sorted(p for p in item.iterdir() if p.is_file() and p.suffix.lower() in known))
+        else:
+            files.append(item)
+    return files
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to ``app``; commands are added as the stages land."""
+    """Add ``run`` and ``params`` to ``app``."""
+
+    @app.command("run")
+    def run(
+        inputs: list[Path] = typer.Argument(..., help="Camera raw / TIFF / PNG / DICOM files or folders."),
+        out: Path = typer.Option(..., "-o", "--out", help="Output folder (created if needed)."),
+        config: Path | None = typer.Option(None, "-c", "--config", help="Parameter file (dslrxr params --default)."),
+        flat: list[Path] = typer.Option([], "--flat", help="Open-beam (flat) frame; repeat for several."),
+        dark: list[Path] = typer.Option([], "--dark", help="Dark frame (X-rays off); repeat for several."),
+        psf: Path | None = typer.Option(None, "--psf", help="PSF model JSON; turns on deblurring."),
+        source_to_object_mm: float | None = typer.Option(None, "--source-to-object-mm", help="SOD for the PSF, mm."),
+        source_to_detector_mm: float | None = typer.Option(None, "--source-to-detector-mm", help="SDD for the PSF, mm."),
+        dicom: bool = typer.Option(False, "--dicom", help="Also write a DICOM DX file."),
+        patient_name: str | None = typer.Option(None, "--patient-name", help="DICOM PatientName (only if given)."),
+        patient_id: str | None = typer.Option(None, "--patient-id", help="DICOM PatientID (only if given)."),
+        jobs: int = typer.Option(1, "--jobs", "-j", min=1, max=64, help="Files processed in parallel (processes)."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Redo files whose outputs exist."),
+    ) -> int:
+        """Run the whole pipeline on each input; write TIFF, PNG (and DICOM) with JSON sidecars."""
+        from ..core.params import PipelineParams, load_params, params_to_dict
+        from ..core.pipeline import output_paths
+
+        params = load_params(config) if config is not None else PipelineParams()
+        if dicom:
+            params.output.dicom = True
+        if psf is not None and (source_to_object_mm is None or source_to_detector_mm is None):
+            raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
+        for ref in [*flat, *dark, *([psf] if psf else [])]:
+            if not ref.is_file():
+                raise ParameterError(f"{ref}: reference file not found")
+        files = _expand_inputs(inputs)
+        if not files:
+            raise ParameterError("no input files found")
+        out.mkdir(parents=True, exist_ok=True)
+        patient = {k: v for k, v in (("PatientName", patient_name), ("PatientID", patient_id)) if v}
+        todo, skipped = [], 0
+        for f in files:
+            expected = output_paths(f, out, params)
+            if not overwrite and expected and all(p.exists() for p in expected.values()):
+                skipped += 1
+                continue
+            todo.append({"input": str(f), "out_dir": str(out), "params": params_to_dict(params),
+                         "flats": [str(p) for p in flat], "darks": [str(p) for p in dark],
+                         "psf": str(psf) if psf else None, "sod": source_to_object_mm,
+                         "sdd": source_to_detector_mm, "patient": patient})
+        if skipped:
+            print(f"dslrxr: skipped {skipped} file(s) with finished outputs (use --overwrite to redo)", file=sys.stderr)
+        failed = 0
+        total = len(todo)
+
+        def report(i: int, outcome: tuple[str, bool, str, float]) -> None:
+            nonlocal failed
+            name, ok, message, seconds = outcome
+            if ok:
+                print(f"[{i}/{total}] {name}: {message} ({seconds:.1f} s)", file=sys.stderr)
+            else:
+                failed += 1
+                text = " ".join(message.split())
+                text = text if text.startswith(name) else f"{name}: {text}"
+                print(f"[{i}/{total}] dslrxr: error: {text}", file=sys.stderr)
+
+        if jobs > 1 and total > 1:
+            with ProcessPoolExecutor(max_workers=min(jobs, total)) as pool:
+                for i, outcome in enumerate(pool.map(_process_one, todo), start=1):
+                    report(i, outcome)
+        else:
+            for i, job in enumerate(todo, start=1):
+                report(i, _process_one(job))
+        if failed:
+            print(f"dslrxr: {failed} of {total} file(s) failed", file=sys.stderr)
+            raise typer.Exit(1)
+        return 0
+
+    @app.command("params")
+    def params_cmd(
+        default: bool = typer.Option(False, "--default", help="Print the full default parameter file."),
+        check: Path | None = typer.Option(None, "--check", help="Validate a parameter file."),
+    ) -> int:
+        """Print the default parameter file (with a comment per key) or check one."""
+        from ..core.params import default_params_toml, load_params
+
+        if check is not None:
+            load_params(check)
+            print(f"{check}: ok")
+            return 0
+        if not default:
+            raise ParameterError("give --default (print the defaults) or --check FILE")
+        sys.stdout.write(default_params_toml())
+        return 0
