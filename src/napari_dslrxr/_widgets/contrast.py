@@ -1,0 +1,251 @@
+"""Contrast widget: dynamic range, latitude, detail and bone-contrast sliders with live preview.
+
+Wraps the display stages of the core (:func:`napari_dslrxr.core.pipeline.enhance_radiograph`:
+value-of-interest scaling, :mod:`~napari_dslrxr.core.dynamic_range` latitude reduction,
+:mod:`~napari_dslrxr.core.contrast` MUSICA-style multiscale contrast and the sigmoid display
+curve). Two kinds of input:
+
+* **linear counts** (a camera frame, flat-fielded or not): converted once to the
+  value-of-interest scaled attenuation image and the screen mask by the core pipeline with
+  the display stages switched off (:func:`napari_dslrxr.core.pipeline.process_frame`);
+* **display radiograph** (DICOM CR/DR, bright = bone): used as it is.
+
+The live preview runs on the whole image, area-downsampled to at most ``preview_max_pixels``
+(default one megapixel, about what a screen shows), in a thread worker, debounced and
+coalesced; it is drawn over the input at full size (layer scale). The low-pass kernel and the
+pyramid depth of the core are relative to the image size, so the preview looks like the
+full-resolution result that "Apply" computes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, Label, PushButton, create_widget
+
+from ..core.contrast import ContrastParams
+from ..core.dynamic_range import DynamicRangeParams
+from ..core.errors import ParameterError
+from ..core.params import PipelineParams
+from ..core.pipeline import enhance_radiograph, process_frame
+from ._common import debounced, guarded, run_in_worker, show_layer
+from ._registry import register_stage_widget
+
+if TYPE_CHECKING:
+    import napari
+
+LINEAR, DISPLAY = "linear counts (camera frame)", "display radiograph (bright = bone)"
+_DEBOUNCE_MS = 60
+
+#: (section, field, label, min, max) of each slider.
+SLIDERS = (
+    ("dynamic_range", "lut_width", "dynamic range (display width)", 0.05, 2.0),
+    ("dynamic_range", "lut_center", "display centre", 0.0, 1.0),
+    ("dynamic_range", "latitude", "latitude (large-area gain)", 0.1, 1.0),
+    ("dynamic_range", "detail_gain", "detail gain", 1.0, 3.0),
+    ("contrast", "detail_contrast", "detail contrast", 0.0, 1.0),
+    ("contrast", "bone_contrast", "bone contrast", 0.5, 3.0),
+    ("contrast", "edge_sharpness", "edge sharpness", 0.5, 3.0),
+)
+
+
+@dataclass
+class PreparedInput:
+    """The display-oriented image the sliders act on, with its region and a preview copy."""
+
+    image: np.ndarray  # float32 (H, W): VOI-scaled attenuation, or the display radiograph
+    mask: np.ndarray | None  # bool (H, W) screen region, or None (all pixels)
+    small: np.ndarray  # area-downsampled image for the preview
+    small_mask: np.ndarray | None
+    factor: float  # full-size pixels per preview pixel
+
+
+def prepare_input(data: np.ndarray, kind: str, max_pixels: int) -> PreparedInput:
+    """Bring a layer's data into the form the display stages take (runs in the worker).
+
+    Linear counts go through the core pipeline with impulse removal, flat field, dynamic
+    range and contrast switched off (no black level subtracted: the layer is taken as
+    counts above black), giving the value-of-interest scaled attenuation and the screen mask.
+    """
+    data = np.asarray(data)
+    if kind == LINEAR:
+        params = PipelineParams()
+        for name in ("passes_h", "passes_s", "passes_v", "passes_grey"):
+            setattr(params.impulse, name, 0)
+        params.flatfield.enabled = False
+        params.region.rectify = False
+        params.dynamic_range.enabled = False
+        params.contrast.enabled = False
+        result = process_frame(data, black_level=0.0, params=params, keep_intermediates=True)
+        image, mask = result.intermediates["attenuation"], result.region.mask
+        if mask.all():
+            mask = None
+    else:
+        image = (data.mean(axis=2) if data.ndim == 3 else data).astype(np.float32)
+        mask = None
+    factor = max(1.0, float(np.sqrt(image.size / max_pixels)))
+    if factor > 1.0:
+        size = (max(8, round(image.shape[1] / factor)), max(8, round(image.shape[0] / factor)))
+        small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        small_mask = None if mask is None else cv2.resize(
+            mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+        factor = image.shape[0] / small.shape[0]
+    else:
+        small, small_mask = image, mask
+    return PreparedInput(image, mask, small, small_mask, factor)
+
+
+def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: PipelineParams,
+           max_pixels: int, full: bool) -> tuple[PreparedInput, np.ndarray]:
+    """Worker job: prepare the input if needed, then run the core display stages on it."""
+    if prepared is None:
+        prepared = prepare_input(data, kind, max_pixels)
+    if full:
+        return prepared, enhance_radiograph(prepared.image, params, prepared.mask)
+    return prepared, enhance_radiograph(prepared.small, params, prepared.small_mask)
+
+
+class ContrastWidget(Container):
+    """Latitude, detail and bone-contrast sliders with a live preview, and a full-size apply."""
+
+    SECTION = "contrast"  # also saves/loads [dynamic_range]
+    SECTIONS = ("dynamic_range", "contrast")
+
+    def __init__(self, viewer: napari.viewer.Viewer, preview_max_pixels: int = 1_000_000):
+        self._viewer = viewer
+        self.preview_max_pixels = int(preview_max_pixels)
+        self._image = create_widget(annotation="napari.layers.Image", label="image")
+        self._kind = ComboBox(choices=[LINEAR, DISPLAY], value=LINEAR, label="input")
+        defaults = PipelineParams()
+        self._sliders: dict[tuple[str, str], FloatSlider] = {}
+        for section, name, label, lo, hi in SLIDERS:
+            value = getattr(getattr(defaults, section), name)
+            self._sliders[(section, name)] = FloatSlider(value=value, min=lo, max=hi, step=0.01, label=label)
+        self._live = CheckBox(value=True, label="live preview")
+        self._apply = PushButton(text="Apply at full resolution")
+        self._readout = Label(value="")
+        super().__init__(widgets=[self._image, self._kind, *self._sliders.values(), self._live, self._apply,
+                                  self._readout])
+        self._base = defaults  # keeps the fields without a slider (and the other sections)
+        self._prepared: tuple | None = None  # (key, PreparedInput)
+        self._preview_worker = None
+        self._preview_pending = False
+        self.last_preview_s: float | None = None
+        self.preview: np.ndarray | None = None
+        self.result: np.ndarray | None = None
+        trigger = debounced(self, self.update_preview, _DEBOUNCE_MS)
+        for widget in (*self._sliders.values(), self._live, self._kind):
+            widget.changed.connect(trigger)
+        self._image.changed.connect(self._input_changed)
+        self._image.changed.connect(trigger)
+        self._apply.changed.connect(self.run)
+        register_stage_widget(viewer, self)
+
+    # -- parameters (TOML sections [dynamic_range] and [contrast]) ------------------------------
+    def pipeline_params(self) -> PipelineParams:
+        """Full pipeline parameters with this widget's slider values."""
+        dr = dataclasses.replace(self._base.dynamic_range, **{n: float(w.value) for (s, n), w in self._sliders.items()
+                                                              if s == "dynamic_range"})
+        ct = dataclasses.replace(self._base.contrast, **{n: float(w.value) for (s, n), w in self._sliders.items()
+                                                        if s == "contrast"})
+        return dataclasses.replace(self._base, dynamic_range=dr, contrast=ct)
+
+    def get_params(self) -> dict[str, object]:
+        params = self.pipeline_params()
+        return {"dynamic_range": params.dynamic_range, "contrast": params.contrast}
+
+    def set_params(self, sections: dict[str, object]) -> None:
+        """Take ``dynamic_range`` and ``contrast`` sections (dataclasses) and show them."""
+        self._base = dataclasses.replace(self._base, **{k: v for k, v in sections.items() if k in self.SECTIONS})
+        for (section, name), widget in self._sliders.items():
+            widget.value = float(getattr(getattr(self._base, section), name))
+
+    # -- input -------------------------------------------------------------------------------------
+    def _input_changed(self, *_args) -> None:
+        layer = self._image.value
+        if layer is not None and layer.metadata.get("format") == "dicom":
+            self._kind.value = DISPLAY
+
+    def _layer(self) -> napari.layers.Image:
+        layer = self._image.value
+        if layer is None:
+            raise ParameterError("choose an image layer")
+        return layer
+
+    def _cached(self, layer) -> PreparedInput | None:
+        key = (id(layer), id(layer.data), self._kind.value, self.preview_max_pixels)
+        if self._prepared is not None and self._prepared[0] == key:
+            return self._prepared[1]
+        return None
+
+    def _store(self, layer, kind: str, prepared: PreparedInput) -> None:
+        self._prepared = ((id(layer), id(layer.data), kind, self.preview_max_pixels), prepared)
+
+    # -- live preview -------------------------------------------------------------------------------
+    def update_preview(self) -> None:
+        """Recompute the preview (no-op unless live preview is on and an image is chosen)."""
+        if not self._live.value or self._image.value is None:
+            return
+        if self._preview_worker is not None and not self._preview_worker.dslrxr_finished:
+            self._preview_pending = True
+            return
+        self._start(full=False)
+
+    @guarded("contrast")
+    def run(self):
+        """Apply the display stages at full resolution in a thread worker; return the worker."""
+        return self._start(full=True)
+
+    def _start(self, *, full: bool):
+        layer = self._layer()
+        kind, params = self._kind.value, self.pipeline_params()
+        started = time.perf_counter()
+        if full:
+            self._apply.enabled = False
+        else:
+            self._preview_pending = False
+
+        def returned(out) -> None:
+            prepared, display = out
+            self._store(layer, kind, prepared)
+            self._show(layer, prepared, display, full, started)
+
+        worker = run_in_worker(render, self._cached(layer), np.asarray(layer.data), kind, params,
+                               self.preview_max_pixels, full, desc="contrast" if full else "contrast preview",
+                               progress_bar=full, on_returned=returned,
+                               on_finished=self._apply_done if full else self._preview_done)
+        if not full:
+            self._preview_worker = worker
+        return worker
+
+    def _preview_done(self) -> None:
+        if self._preview_pending:
+            self._preview_pending = False
+            self.update_preview()
+
+    def _apply_done(self) -> None:
+        self._apply.enabled = True
+
+    def _show(self, layer, prepared: PreparedInput, display: np.ndarray, full: bool, started: float) -> None:
+        scale = np.asarray(layer.scale[-2:], float) * (1.0 if full else prepared.factor)
+        # Pixel centres: a preview pixel covers `factor` input pixels.
+        translate = np.asarray(layer.translate[-2:], float)
+        if not full:
+            translate = translate + np.asarray(layer.scale[-2:], float) * (prepared.factor - 1.0) / 2.0
+        name = f"{layer.name} contrast" if full else f"{layer.name} contrast (preview)"
+        show_layer(self._viewer, display, name, "image", scale=tuple(scale), translate=tuple(translate),
+                   contrast_limits=(0.0, 1.0), colormap="gray")
+        elapsed = time.perf_counter() - started
+        if full:
+            self.result = display
+            self._readout.value = f"applied at {display.shape[1]}x{display.shape[0]} px in {elapsed:.2f} s"
+        else:
+            self.preview = display
+            self.last_preview_s = elapsed
+            self._readout.value = (f"preview {display.shape[1]}x{display.shape[0]} px "
+                                   f"(1/{prepared.factor:.2g} scale) in {elapsed * 1000:.0f} ms")

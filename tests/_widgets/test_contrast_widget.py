@@ -1,0 +1,109 @@
+"""Contrast widget: sliders change the look as the core says; preview matches the full result."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from napari_dslrxr._widgets.contrast import DISPLAY, LINEAR, ContrastWidget
+from napari_dslrxr.core.phantom import make_dslr_radiograph
+
+pytestmark = pytest.mark.gui
+
+
+def _split(display, mask, size_px=31):
+    """Std of the large-area part and of the detail inside the mask (display units)."""
+    low = cv2.blur(display.astype(np.float32), (size_px, size_px))
+    return float(np.std(low[mask])), float(np.std((display - low)[mask]))
+
+
+@pytest.fixture
+def phantom():
+    return make_dslr_radiograph((240, 320), seed=3, pulse_rate=0.0)
+
+
+@pytest.fixture
+def docked(make_napari_viewer, phantom):
+    viewer = make_napari_viewer()
+    widget = ContrastWidget(viewer, preview_max_pixels=20_000)  # force a downsampled preview
+    viewer.window.add_dock_widget(widget)
+    clean = phantom.raw_rgb.astype(np.float32) - phantom.black_level
+    widget._live.value = False
+    widget._image.value = viewer.add_image(clean, name="frame", rgb=False, channel_axis=None)
+    return viewer, widget
+
+
+def _apply(widget, wait_for_worker, **values):
+    for (section, name), slider in widget._sliders.items():
+        if name in values:
+            slider.value = values[name]
+    wait_for_worker(widget.run())
+    return widget.result.copy()
+
+
+def test_latitude_and_bone_contrast_sliders(docked, phantom, wait_for_worker):
+    viewer, widget = docked
+    assert widget._kind.value == LINEAR
+    inner = cv2.erode(phantom.truth.screen_mask.astype(np.uint8), np.ones((25, 25), np.uint8)).astype(bool)
+    plain = _apply(widget, wait_for_worker, latitude=1.0, detail_gain=1.0, bone_contrast=1.0,
+                   detail_contrast=0.0, edge_sharpness=1.0)
+    assert plain.shape == phantom.raw_rgb.shape[:2] and 0.0 <= plain.min() and plain.max() <= 1.0
+    assert viewer.layers["frame contrast"].data is widget.result
+    low_lat = _apply(widget, wait_for_worker, latitude=0.3)
+    bone = _apply(widget, wait_for_worker, latitude=1.0, bone_contrast=3.0)
+    plain_low, plain_detail = _split(plain, inner)
+    lat_low, _ = _split(low_lat, inner)
+    _, bone_detail = _split(bone, inner)
+    assert lat_low < 0.8 * plain_low  # latitude compresses large-area variation
+    assert bone_detail > 1.3 * plain_detail  # bone contrast boosts mid-size structure
+    params = widget.get_params()
+    assert params["contrast"].bone_contrast == pytest.approx(3.0)
+    assert params["dynamic_range"].latitude == pytest.approx(1.0)
+
+
+def test_live_preview_is_downsampled_and_matches_the_full_result(docked, qtbot, wait_for_worker):
+    viewer, widget = docked
+    full = _apply(widget, wait_for_worker, bone_contrast=2.5)
+    widget._live.value = True
+    qtbot.waitUntil(lambda: widget.preview is not None, timeout=20_000)
+    wait_for_worker(widget._preview_worker)
+    preview_layer = viewer.layers["frame contrast (preview)"]
+    small = preview_layer.data
+    assert small.size <= 20_000 < full.size
+    # Drawn over the input: its world extent equals the full image's.
+    extent = np.asarray(small.shape) * np.asarray(preview_layer.scale)
+    np.testing.assert_allclose(extent, full.shape, rtol=0.02)
+    reference = cv2.resize(full, small.shape[::-1], interpolation=cv2.INTER_AREA)
+    assert np.corrcoef(small.ravel(), reference.ravel())[0, 1] > 0.95
+    # A slider move updates the preview.
+    before = small.copy()
+    widget._sliders[("dynamic_range", "lut_width")].value = 0.2
+    qtbot.waitUntil(lambda: not np.array_equal(viewer.layers["frame contrast (preview)"].data, before),
+                    timeout=20_000)
+    assert widget.last_preview_s is not None and "ms" in widget._readout.value
+
+
+def test_display_radiograph_input(make_napari_viewer, wait_for_worker, rng):
+    viewer = make_napari_viewer()
+    widget = ContrastWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    widget._live.value = False
+    yy, xx = np.mgrid[:128, :160]
+    radiograph = (1000 + 2000 * (xx / 160) + 300 * ((yy // 16) % 2)).astype(np.uint16)
+    layer = viewer.add_image(radiograph, name="cr", metadata={"format": "dicom"})
+    widget._image.value = layer
+    assert widget._kind.value == DISPLAY
+
+    def ramp_and_stripes(out):
+        ramp = out[:, 120:140].mean() - out[:, 20:40].mean()
+        stripes = np.abs(out[8:120, 60:100] - out[16:128, 60:100]).mean()  # 16 px period, half shift
+        return ramp, stripes
+
+    wide = _apply(widget, wait_for_worker, latitude=1.0)
+    narrow = _apply(widget, wait_for_worker, latitude=0.3)
+    assert wide.shape == radiograph.shape
+    (ramp_wide, stripes_wide), (ramp_narrow, stripes_narrow) = ramp_and_stripes(wide), ramp_and_stripes(narrow)
+    # Latitude compresses the slow left-right ramp more than the 16 px stripes.
+    assert ramp_narrow < 0.7 * ramp_wide
+    assert ramp_narrow / stripes_narrow < 0.7 * ramp_wide / stripes_wide
