@@ -1,0 +1,99 @@
+"""Tests of ``dslrxr psf fit`` and ``dslrxr psf kernel``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_dslrxr.cli import main
+from napari_dslrxr.core.edge_fit import synthesize_edge_image
+from napari_dslrxr.core.io import write_tiff
+from napari_dslrxr.core.psf import PSFModel, load_psf
+
+TRUTH = PSFModel(pixel_pitch_mm=0.01, source_fwhm_x_mm=0.02, source_fwhm_y_mm=0.03,
+                 detector_fwhm_core_mm=0.015, detector_fwhm_tail_mm=0.2, detector_weight_core=0.9)
+
+
+@pytest.fixture(scope="module")
+def edge_folder(tmp_path_factory):
+    """Four raw-count edge images (2 heights x H/V) with flat and dark frames, and their config."""
+    rng = np.random.default_rng(7)
+    folder = tmp_path_factory.mktemp("edges")
+    dark = np.full((80, 80), 200.0, np.float32)
+    bright = np.full((80, 80), 4200.0, np.float32)
+    write_tiff(folder / "dark.tif", dark)
+    write_tiff(folder / "flat.tif", bright)
+    lines = ["pixel_pitch_mm = 0.01"]
+    for j, (sod, angle) in enumerate([(50.0, 3.0), (50.0, 92.5), (100.0, -2.0), (100.0, 273.5)]):
+        t = synthesize_edge_image(TRUTH, sod, 150.0, (80, 80), angle, offset_px=rng.uniform(-3, 3),
+                                  low=0.02, high=0.97)
+        counts = 200.0 + 4000.0 * (t + rng.normal(0, 0.006, t.shape))
+        write_tiff(folder / f"edge{j}.tif", counts.astype(np.float32))
+        lines += ["[[edges]]", f'image = "edge{j}.tif"', f"source_to_object_mm = {sod}",
+                  "source_to_detector_mm = 150", 'bright = "flat.tif"', 'dark = "dark.tif"']
+    (folder / "edges.toml").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def test_psf_fit_then_kernel(edge_folder, tmp_path, capsys):
+    psf_path = tmp_path / "psf.json"
+    assert main(["psf", "fit", str(edge_folder / "edges.toml"), "-o", str(psf_path)]) == 0
+    assert "residual RMS" in capsys.readouterr().out
+    model = load_psf(psf_path)
+    assert model.source_fwhm_y_mm == pytest.approx(0.03, rel=0.05)
+    assert model.detector_fwhm_core_mm == pytest.approx(0.015, rel=0.05)
+    sidecar = json.loads((tmp_path / "psf.json.json").read_text())
+    assert sidecar["stage"] == "psf fit" and len(sidecar["inputs"]) == 7   # config + 4 edges + flat + dark
+    assert sidecar["results"]["residual_rms"] < 0.0065
+
+    kernel_path = tmp_path / "kernel.tif"
+    assert main(["psf", "kernel", str(psf_path), "--source-to-object-mm", "75", "--source-to-detector-mm", "150",
+                 "-o", str(kernel_path)]) == 0
+    kernel = tifffile.imread(kernel_path)
+    assert kernel.dtype == np.float32 and kernel.shape[0] % 2 == 1 and kernel.shape[0] == kernel.shape[1]
+    assert abs(float(kernel.sum(dtype=np.float64)) - 1.0) < 1e-5
+    np.testing.assert_array_equal(kernel, model.kernel(75.0, 150.0))
+    truth = TRUTH.kernel(75.0, 150.0)
+    n = max(kernel.shape[0], truth.shape[0])
+    pad = lambda k: np.pad(k.astype(float), ((n - k.shape[0]) // 2,) * 2)  # noqa: E731
+    assert np.linalg.norm(pad(kernel) - pad(truth)) / np.linalg.norm(pad(truth)) < 0.05
+    assert (tmp_path / "kernel.tif.json").exists()
+    # Same input, same bytes.
+    again = tmp_path / "kernel2.tif"
+    main(["psf", "kernel", str(psf_path), "--source-to-object-mm", "75", "--source-to-detector-mm", "150",
+          "-o", str(again)])
+    assert again.read_bytes() == kernel_path.read_bytes()
+
+
+def test_psf_fit_bad_config_is_one_line_exit_2(edge_folder, tmp_path, capsys):
+    config = tmp_path / "bad.toml"
+    config.write_text('pixel_pitch_mm = 0.01\n[[edges]]\nimage = "x.tif"\nsource_to_detector_mm = 150\n')
+    assert main(["psf", "fit", str(config), "-o", str(tmp_path / "psf.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(config) in err and "source_to_object_mm" in err
+    config.write_text('pixel_pitch_mm = -1\n[[edges]]\nimage = "x.tif"\nsource_to_object_mm = 1\n'
+                      'source_to_detector_mm = 150\n')
+    assert main(["psf", "fit", str(config), "-o", str(tmp_path / "psf.json")]) == 2
+    assert "pixel_pitch_mm" in capsys.readouterr().err
+    assert not (tmp_path / "psf.json").exists()
+
+
+def test_psf_kernel_errors(tmp_path, capsys):
+    bad = tmp_path / "psf.json"
+    bad.write_text('{"format": "napari-dslrxr psf", "format_version": 1, "pixel_pitch_mm": 0.01}')
+    assert main(["psf", "kernel", str(bad), "--source-to-object-mm", "75", "--source-to-detector-mm", "150",
+                 "-o", str(tmp_path / "k.tif")]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "source_fwhm_x_mm" in err
+    from napari_dslrxr.core.psf import save_psf
+    save_psf(TRUTH, bad)
+    assert main(["psf", "kernel", str(bad), "--source-to-object-mm", "200", "--source-to-detector-mm", "150",
+                 "-o", str(tmp_path / "k.tif")]) == 2
+    assert "source_to_detector_mm" in capsys.readouterr().err
+    # Refuses to overwrite its input.
+    assert main(["psf", "kernel", str(bad), "--source-to-object-mm", "75", "--source-to-detector-mm", "150",
+                 "-o", str(bad)]) == 2
+    assert load_psf(bad) == TRUTH
