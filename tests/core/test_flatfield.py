@@ -65,18 +65,25 @@ def test_savu_banding_drops_tenfold(shared_data):
 
 
 @pytest.mark.realdata
-def test_niqa_banding_reduced(shared_data):
+def test_niqa_banding_removed_down_to_the_noise_floor(shared_data):
+    from napari_dslrxr.core.impulse import remove_impulses
+
     folder = shared_data / "niqa_edge"
-    flat = read_image(folder / "ob.tif").data
+    # gamma-ray spots in the open beam would be divided into every radiograph: clean it (stage i)
+    flat = remove_impulses(read_image(folder / "ob.tif").data).image
     dark = read_image(folder / "dc.tif").data
-    params = FlatFieldParams(flat_smoothing_px=0.0)
-    rows, cols = slice(2, -2), slice(0, 50)  # left strip is outside the edge plate
-    factors = []
-    for i in range(8):
-        raw = read_image(folder / f"edge20mm_000{i}.tif").data
-        cleaned, _ = remove_bright_pulses(raw)
-        corrected = flat_field_correct(cleaned, [flat], [dark], params=params)
-        factors.append(_row_mean_std(raw.astype(np.float32), rows, cols) / _row_mean_std(corrected, rows, cols))
-    # Measured 4.3-6.2x per frame (median 5.7x): the residual row structure changes between
-    # exposures, so one flat cannot reach 10x here (see the report); guard against regressions.
-    assert np.median(factors) > 5.0 and min(factors) > 4.0, factors
+    params = FlatFieldParams(flat_smoothing_px=0.0)  # the banding is fine row structure: keep it
+    rows, cols = slice(2, -2), slice(0, 50)  # the left strip is outside the edge plate
+    raws = [read_image(folder / f"edge20mm_000{i}.tif").data for i in range(4)]
+    corrected = [flat_field_correct(remove_impulses(raw).image, [flat], [dark], params=params) for raw in raws]
+    factors = [_row_mean_std(r.astype(np.float32), rows, cols) / _row_mean_std(c, rows, cols)
+               for r, c in zip(raws, corrected, strict=True)]
+    # Noise floor of a row-mean profile, from differences of repeated exposures (no banding in
+    # a difference): after correction the profile must be at the noise floor, i.e. no banding left.
+    profiles = [c[rows, cols].mean(axis=1) / c[rows, cols].mean() for c in corrected]
+    noise_floor = np.mean([np.std(profiles[i] - profiles[i + 1]) / np.sqrt(2) for i in range(3)])
+    residual = np.median([p.std() for p in profiles])
+    # Measured: factors 4.3-6.1x, residual 0.38 % vs noise floor 0.34 %, raw banding 2.3 %.
+    # One frame's row means are noise-limited, so ~6.5x is the ceiling here (see the report).
+    assert np.median(factors) > 5.0, factors
+    assert residual < 1.25 * noise_floor, (residual, noise_floor)

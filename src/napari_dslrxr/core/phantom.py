@@ -282,15 +282,19 @@ def make_dslr_radiograph(shape: tuple[int, int] = (600, 900), *, seed: int = 0,
     clean_flat = expose(screen_cover)
 
     def sample(expected: np.ndarray) -> np.ndarray:
-        photons = rng.poisson(np.maximum(expected, 0) / camera_gain).astype(np.float32)
-        counts = photons * camera_gain + rng.normal(0.0, read_noise_counts, expected.shape).astype(np.float32)
+        # channel by channel and in float32, so a 24 Mpx frame stays within a few hundred MB
+        counts = np.empty(expected.shape, np.float32)
+        for c in range(expected.shape[2]):
+            counts[..., c] = rng.poisson(np.maximum(expected[..., c], 0) / camera_gain)
+            counts[..., c] *= camera_gain
+            counts[..., c] += rng.standard_normal(expected.shape[:2], dtype=np.float32) * np.float32(read_noise_counts)
         return counts
 
     radiograph = sample(clean)
     pulse_mask = _add_pulses(radiograph, rng, pulse_rate, white_level)
     flat = sample(clean_flat)
     _add_pulses(flat, rng, pulse_rate, white_level)
-    dark = rng.normal(0.0, read_noise_counts, (h, w, 3)).astype(np.float32)
+    dark = rng.standard_normal((h, w, 3), dtype=np.float32) * np.float32(read_noise_counts)
 
     def to_u16(counts: np.ndarray) -> np.ndarray:
         return np.clip(np.rint(counts + black_level), 0, white_level).astype(np.uint16)
