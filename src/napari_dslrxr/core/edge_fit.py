@@ -580,17 +580,45 @@ def _robust_sigma(values: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(values - np.median(values))))
 
 
-def _difference_noise(edge: _Prepared, residual: np.ndarray) -> float:
-    """Pixel noise from neighbour differences of the residual along the edge (model error cancels)."""
-    img = np.full(edge.shape, np.nan)
+def _level_bins(level: np.ndarray, n_bins: int = 8) -> np.ndarray:
+    """Bin index of every pixel by its fitted ESF level (quantile bins): noise grows with the signal."""
+    cuts = np.quantile(level, np.linspace(0.0, 1.0, n_bins + 1)[1:-1])
+    return np.searchsorted(cuts, level)
+
+
+def _local_sigma(level: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """Robust residual sigma per pixel, estimated within bins of the fitted level."""
+    bins = _level_bins(level)
+    sigma = np.array([_robust_sigma(residual[bins == b]) if np.any(bins == b) else np.inf
+                      for b in range(bins.max() + 1)])
+    return sigma[bins]
+
+
+def _difference_noise(edge: _Prepared, residual: np.ndarray, level: np.ndarray) -> float:
+    """RMS pixel noise from neighbour differences of the residual along the edge.
+
+    Differences along the edge cancel the (smooth) model error; a robust sigma is taken per
+    bin of the fitted level, because photon noise differs between the dark and bright sides,
+    and the bins are combined as an RMS over pixels. Spatially correlated noise (a blurred
+    scintillator) makes this an underestimate.
+    """
     h, w = edge.shape
+    res_img = np.full(edge.shape, np.nan)
+    lev_img = np.full(edge.shape, np.nan)
     rr = np.rint(edge.y_px[edge.keep] + 0.5 * (h - 1)).astype(int)
     cc = np.rint(edge.x_px[edge.keep] + 0.5 * (w - 1)).astype(int)
-    img[rr, cc] = residual
+    res_img[rr, cc] = residual
+    lev_img[rr, cc] = level
     along_rows = abs(math.cos(edge.angle_rad)) >= abs(math.sin(edge.angle_rad))  # edge runs along rows
-    diff = (img[1:, :] - img[:-1, :]) if along_rows else (img[:, 1:] - img[:, :-1])
-    diff = diff[np.isfinite(diff)]
-    return _robust_sigma(diff) / math.sqrt(2.0) if diff.size else float("nan")
+    if along_rows:
+        diff, mean_level = res_img[1:, :] - res_img[:-1, :], 0.5 * (lev_img[1:, :] + lev_img[:-1, :])
+    else:
+        diff, mean_level = res_img[:, 1:] - res_img[:, :-1], 0.5 * (lev_img[:, 1:] + lev_img[:, :-1])
+    ok = np.isfinite(diff)
+    if ok.sum() < 16:
+        return float("nan")
+    sigma = _local_sigma(mean_level[ok], diff[ok]) / math.sqrt(2.0)
+    return float(np.sqrt(np.mean(sigma ** 2)))
 
 
 def _profiles(t: dict, values: np.ndarray, bin_px: float = 0.25, half_range_px: float = 48.0) -> dict:
@@ -729,13 +757,14 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
         total_iterations += int(result.nit)
         evaluations += int(result.nfev)
         if pass_index + 1 < passes:
-            residuals, _, _ = problem.residuals_and_jacobian_normal(theta)
-            sigma = _robust_sigma(np.concatenate(residuals))
+            fwhm, local = problem.unpack(theta)
             changed = False
-            for p, r in zip(prepared, residuals):
+            for j, p in enumerate(prepared):
+                t = problem._edge_terms(j, fwhm, local[j], False)
+                r = t["model"] - p.values[p.keep]
                 full = np.zeros(p.values.size)
-                full[p.keep] = r
-                bad = p.keep & (np.abs(full) > outlier_sigma * sigma)
+                full[p.keep] = np.abs(r) / _local_sigma(t["esf"], r)
+                bad = p.keep & (full > outlier_sigma)
                 if bad.any():
                     p.keep = p.keep & ~bad
                     n_rejected += int(bad.sum())
@@ -775,7 +804,7 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
             "edge_offset_px": float(local[j, 0]), "low_level": float(t["low"]),
             "high_level": float(t["high"]),
             "residual_rms": float(np.sqrt(np.mean(r ** 2))),
-            "noise_rms_estimate": _difference_noise(p, r),
+            "noise_rms_estimate": _difference_noise(p, r, t["esf"]),
             "n_pixels": int(p.keep.sum()), "n_impulses_masked": p.n_impulses_masked,
             "profile": _profiles(t, p.values[p.keep]),
         })
