@@ -112,3 +112,23 @@ def test_deblur_stage_runs_with_a_kernel(frames):
     result = process_frame(small.raw_rgb, flats=[small.flat], darks=[small.dark], psf_kernel=kernel)
     assert isinstance(result.results["deblur"], dict) and result.timings_s["deblur"] > 0
     assert np.isfinite(result.display).all()
+
+
+def test_camera_raw_input_cleans_pulses_on_the_cfa_planes(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from robustness.synthetic_files import write_dng
+
+    small = make_dslr_radiograph((192, 256), seed=7, pulse_rate=0.0)
+    green = small.raw_rgb[..., 1].astype(np.float64) - small.black_level
+    mosaic = np.clip(green / 4 + 64, 0, 4095).astype(np.uint16)  # 12-bit RGGB-like mosaic
+    rng = np.random.default_rng(0)
+    rows, cols = rng.integers(4, 188, 60), rng.integers(4, 252, 60)
+    mosaic[rows, cols] = 4000  # zingers
+    path = write_dng(tmp_path / "shot.dng", mosaic, black_counts=64, white_counts=4095)
+    written = run_file(path, tmp_path)
+    side = json.loads(written[0].with_name(written[0].name + ".json").read_text())
+    assert side["results"]["impulse"]["space"] == "cfa"
+    assert sum(side["results"]["impulse"]["pulse_pixels"].values()) >= 40

@@ -166,15 +166,19 @@ def enhance_contrast(image: np.ndarray, params: ContrastParams | None = None,
     bands = laplacian_pyramid(x.copy(), levels)
     power = 1.0 - 0.7 * float(params.detail_contrast)
     noise_level = 0.0
+    use_mask = mask is not None and mask.shape == x.shape and not mask.all()
     for index, band in enumerate(bands[:-1]):
-        if mask is not None and mask.shape == x.shape:
-            band_mask = mask if index == 0 else cv2.resize(
-                mask.astype(np.uint8), (band.shape[1], band.shape[0]), interpolation=cv2.INTER_NEAREST).astype(bool)
-            sample = band[band_mask] if band_mask.any() else band.ravel()
+        # statistics from a regular subsample (about 1 Mpx): boolean indexing of a 24 Mpx band
+        # would cost more than the pyramid itself
+        step = max(1, int(np.sqrt(band.size / 1_000_000)))
+        sub = band[::step, ::step]
+        if use_mask:
+            full_step = step * (2**index)
+            sub_mask = mask[::full_step, ::full_step][: sub.shape[0], : sub.shape[1]]
+            sub = sub[: sub_mask.shape[0], : sub_mask.shape[1]]
+            sample = sub[sub_mask] if sub_mask.any() else sub.ravel()
         else:
-            sample = band.ravel()
-        if sample.size > 2_000_000:
-            sample = sample[:: sample.size // 1_000_000]
+            sample = sub.ravel()
         if index == 0:
             noise_level = float(params.noise_floor) * robust_sigma(sample)
         max_coef = float(np.percentile(np.abs(sample), 99.5)) if sample.size else 1.0

@@ -123,7 +123,8 @@ def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, para
 def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: Sequence[np.ndarray] = (),
                  black_level=None, psf_kernel: np.ndarray | None = None,
                  params: PipelineParams | None = None, reference: FlatReference | None = None,
-                 keep_intermediates: bool = False) -> Generator[tuple[int, int], None, PipelineResult]:
+                 keep_intermediates: bool = False,
+                 impulses_removed: dict | None = None) -> Generator[tuple[int, int], None, PipelineResult]:
     """Run the six stages on one frame, yielding ``(done, total)`` after each stage.
 
     Parameters
@@ -141,6 +142,9 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
         A prepared flat-field reference (reuse across a batch); overrides flats/darks.
     keep_intermediates : bool
         Keep the intermediate images in the result (memory: several full-size copies).
+    impulses_removed : dict, optional
+        Set when stage (i) already ran on the raw CFA planes (:func:`run_file` does this for
+        camera raw input); its statistics are recorded and the stage is skipped.
 
     Returns
     -------
@@ -164,7 +168,11 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
 
     # (i) impulse removal on the colour image (linear counts)
     t0 = clock()
-    cleaned = _impulse_stage(image, params, results)
+    if impulses_removed is not None:
+        results["impulse"] = impulses_removed
+        cleaned = image
+    else:
+        cleaned = _impulse_stage(image, params, results)
     if keep_intermediates:
         inter["impulse"] = cleaned
     timings["impulse"] = clock() - t0
@@ -210,13 +218,16 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     if params.region.rectify and region.detected or (params.region.rectify and params.region.polygon_xy):
         grey = rectify(grey, region.polygon_xy)
         mask = np.ones(grey.shape, bool)
-    sample = grey[mask] if mask.any() else grey.ravel()
-    floor = max(float(np.percentile(sample[:: max(1, sample.size // 500_000)], 99.5)) * 1e-3, 1e-6)
+    step = max(1, int(np.sqrt(grey.size / 1_000_000)))  # statistics from a regular subsample
+    sub_mask = mask[::step, ::step]
+    sample = grey[::step, ::step][sub_mask] if sub_mask.any() else grey[::step, ::step].ravel()
+    floor = max(float(np.percentile(sample, 99.5)) * 1e-3, 1e-6)
     np.maximum(grey, floor, out=grey)
     attenuation = np.log(grey, out=grey)  # in place: grey is not needed any more
     if params.output.polarity == "bone_white":
         np.negative(attenuation, out=attenuation)
-    lo, hi = voi_window(attenuation[mask] if mask.any() else attenuation,
+    sub_att = attenuation[::step, ::step]
+    lo, hi = voi_window(sub_att[sub_mask] if sub_mask.any() else sub_att,
                         low_percentile=params.region.voi_low_percentile,
                         high_percentile=params.region.voi_high_percentile,
                         exclude_direct_exposure=params.region.exclude_direct_exposure)
@@ -433,8 +444,21 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     params = validate_params(params or PipelineParams())
     loaded = read_image(input_path)
     black = None
+    image = loaded.data
+    impulses_removed = None
+    t_cfa = time.perf_counter()
     if loaded.format == "raw":
         black = 0.0  # rawpy's linear RGB has the black level subtracted already
+        if loaded.raw is not None and params.impulse.passes_grey > 0:
+            # stage (i) on the Bayer planes, before demosaicing spreads each zinger
+            from .impulse import demosaic_cleaned_raw, remove_impulses_cfa
+
+            cfa = remove_impulses_cfa(loaded.raw.cfa_planes, params.impulse)
+            image = demosaic_cleaned_raw(input_path, cfa.image, loaded.raw)
+            impulses_removed = {"space": "cfa",
+                                "pulse_pixels": {k: int(np.count_nonzero(v)) for k, v in cfa.masks.items()},
+                                "gain": cfa.gain, "pulse_rate": cfa.pulse_rate}
+    t_cfa = time.perf_counter() - t_cfa
     kernel = None
     if psf_path is not None:
         if source_to_object_mm is None or source_to_detector_mm is None:
@@ -447,12 +471,15 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
         darks = load_frames(dark_paths)
         for name, frames in (("flat", flats), ("dark", darks)):
             for p, f in zip(flat_paths if name == "flat" else dark_paths, frames, strict=True):
-                if f.shape != loaded.data.shape:
-                    raise InputError(p, f"{name} frame shape {f.shape} differs from {input_path}'s {loaded.data.shape}")
+                if f.shape != image.shape:
+                    raise InputError(p, f"{name} frame shape {f.shape} differs from {input_path}'s {image.shape}")
         offset = black if black is not None else params.flatfield.black_level_counts
-        reference = prepare_flat_reference(loaded.data.shape, flats=flats, darks=darks, black_level=offset,
+        reference = prepare_flat_reference(image.shape, flats=flats, darks=darks, black_level=offset,
                                            params=params.flatfield)
-    result = process_frame(loaded.data, params=params, reference=reference, psf_kernel=kernel, progress=progress)
+    result = process_frame(image, params=params, reference=reference, psf_kernel=kernel, progress=progress,
+                           impulses_removed=impulses_removed)
+    if impulses_removed is not None:
+        result.timings_s["impulse"] = t_cfa
     inputs = [Path(input_path), *map(Path, flat_paths), *map(Path, dark_paths)]
     if psf_path is not None:
         inputs.append(Path(psf_path))

@@ -189,10 +189,13 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None) -> Regi
         return Region(polygon_mask((h, w), poly), poly, detected=False)
     if not params.enabled:
         return Region(np.ones((h, w), bool), whole, detected=False)
-    grey = arr.astype(np.float32).sum(axis=2) if arr.ndim == 3 else arr.astype(np.float32)
     factor = max(1.0, max(h, w) / float(params.analysis_size_px))
-    small = cv2.resize(grey, (max(8, round(w / factor)), max(8, round(h / factor))), interpolation=cv2.INTER_AREA) \
-        if factor > 1 else grey
+    source = arr if arr.dtype == np.float32 else arr.astype(np.float32)
+    # downsample first (area average), then sum the colour channels: no full-size copy
+    small = cv2.resize(source, (max(8, round(w / factor)), max(8, round(h / factor))), interpolation=cv2.INTER_AREA) \
+        if factor > 1 else source.copy()
+    if small.ndim == 3:
+        small = small.sum(axis=2)
     small = cv2.GaussianBlur(small, (0, 0), 1.0)
     top = float(np.percentile(small, 99.5))
     if not top > 0:
