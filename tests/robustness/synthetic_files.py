@@ -71,10 +71,11 @@ def write_dng(path: Path, mosaic: np.ndarray, *, pattern: str = "RGGB", black_co
 
 def write_dicom(path: Path, pixels: np.ndarray, *, photometric: str = "MONOCHROME1",
                 bits_stored: int = 12, rows_cols: tuple[int, int] | None = None,
-                pixel_spacing_mm: float | None = 0.1) -> Path:
+                pixel_spacing_mm: float | None = 0.1, private: bool = False) -> Path:
     """Write a minimal single-frame CR DICOM (explicit VR little endian) of uint16 pixels.
 
-    ``rows_cols`` overrides the Rows/Columns written in the header (for size-limit tests).
+    ``rows_cols`` overrides the Rows/Columns written in the header (for size-limit tests);
+    ``private`` fills patient, operator and device-serial fields from :data:`PRIVATE_STRINGS`.
     """
     import pydicom
     from pydicom.dataset import FileDataset, FileMetaDataset
@@ -96,6 +97,12 @@ def write_dicom(path: Path, pixels: np.ndarray, *, photometric: str = "MONOCHROM
     ds.PixelRepresentation = 0
     if pixel_spacing_mm is not None:
         ds.ImagerPixelSpacing = [pixel_spacing_mm, pixel_spacing_mm]
+    if private:
+        ds.PatientName = PRIVATE_STRINGS["owner"].replace(" ", "^")
+        ds.PatientID = PRIVATE_STRINGS["serial"]
+        ds.OperatorsName = PRIVATE_STRINGS["owner"]
+        ds.DeviceSerialNumber = PRIVATE_STRINGS["serial"]
+        ds.InstitutionAddress = PRIVATE_STRINGS["gps"]
     ds.PixelData = np.ascontiguousarray(pixels, dtype="<u2").tobytes()
     pydicom.dcmwrite(path, ds, enforce_file_format=True)
     return Path(path)

@@ -28,6 +28,7 @@ import tempfile
 import threading
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from glob import escape as glob_escape
 from pathlib import Path
 
 import numpy as np
@@ -361,6 +362,36 @@ def read_image(path: str | os.PathLike, *, max_pixels: int | None = None,
     return read_raw(path, max_pixels=limit, with_planes=with_raw_planes)
 
 
+def _check_tiff_structure(path: Path, tif, limit: int, *, what: str = "TIFF", max_pages: int = 64) -> None:
+    """Refuse a TIFF (or TIFF-based camera raw) whose tags promise more than the file holds.
+
+    Every page and SubIFD must declare at most ``limit`` pixels per image and per tile, and
+    its strips or tiles must lie inside the file: decoders allocate a buffer of the declared
+    byte count before reading, so a damaged count of 4 GB would otherwise be allocated.
+    """
+    import tifffile
+
+    file_size = path.stat().st_size
+    todo, seen = list(tif.pages[:max_pages]), 0
+    while todo and seen < 4 * max_pages:
+        page = todo.pop()
+        seen += 1
+        if not isinstance(page, tifffile.TiffPage):
+            continue
+        width, length = int(page.imagewidth), int(page.imagelength)
+        if width * length > limit or int(page.tilewidth) * int(page.tilelength) > limit:
+            raise InputError(path, f"declared size {length}x{width} pixels (tiles "
+                                   f"{page.tilelength}x{page.tilewidth}) exceeds the limit of {limit} "
+                                   "pixels (set DSLRXR_MAX_PIXELS to raise it)")
+        for offset, count in zip(page.dataoffsets, page.databytecounts, strict=False):
+            if int(offset) + int(count) > file_size:
+                raise InputError(path, f"corrupt or truncated {what} (image data up to byte "
+                                       f"{int(offset) + int(count)} but the file has {file_size})")
+        if page.subifds:
+            with contextlib.suppress(Exception):  # unreadable SubIFDs are the decoder's business
+                todo.extend(tifffile.TiffPages(page)[:max_pages])
+
+
 def _read_tiff(path: Path, limit: int) -> LoadedImage:
     import tifffile
 
@@ -379,6 +410,7 @@ def _read_tiff(path: Path, limit: int) -> LoadedImage:
             samples = shape[axes.index("S")] if "S" in axes else 1
             _check_declared_size(path, shape[axes.index("Y")], shape[axes.index("X")], samples,
                                  np.dtype(series.dtype).itemsize, limit)
+            _check_tiff_structure(path, tif, limit)
             data = series.asarray()
             page = series.pages[0] if series.pages else None
             meta = {"photometric": getattr(getattr(page, "photometric", None), "name", "")}
@@ -429,8 +461,8 @@ def _read_png(path: Path, limit: int) -> LoadedImage:
     if data is None:
         detail = _last_line(chatter)
         raise InputError(path, "corrupt or truncated PNG" + (f" ({_short(detail)})" if detail else ""))
-    if data.ndim == 3 and data.shape[2] == 2:
-        data = data[..., 0]  # grey + alpha: keep the grey
+    if data.ndim == 3 and colour_type in (0, 4):
+        data = data[..., 0]  # grey (+ alpha), which OpenCV expands to BGRA: keep the grey
     elif data.ndim == 3:
         code = cv2.COLOR_BGRA2RGB if data.shape[2] == 4 else cv2.COLOR_BGR2RGB
         data = cv2.cvtColor(data, code)
@@ -440,9 +472,20 @@ def _read_png(path: Path, limit: int) -> LoadedImage:
 def _read_dicom(path: Path, limit: int) -> LoadedImage:
     import pydicom
 
+    # pydicom reads an element by asking the file for its declared length, and a buffered
+    # file allocates that much first: a damaged length of 4 GB would be allocated. A file
+    # read into memory (its size is bounded here) hands out only the bytes that exist.
+    size = path.stat().st_size
+    if size > 16 * limit + (1 << 20):
+        raise InputError(path, f"DICOM file of {size} bytes exceeds the limit of {16 * limit} bytes "
+                               "(set DSLRXR_MAX_PIXELS to raise it)")
+    try:
+        content = _stdio.BytesIO(path.read_bytes())
+    except OSError as exc:
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
     try:
         with _quiet_decoder():
-            ds = pydicom.dcmread(path, force=path.suffix.lower() in DICOM_EXTENSIONS)
+            ds = pydicom.dcmread(content, force=path.suffix.lower() in DICOM_EXTENSIONS)
             if "PixelData" not in ds:
                 raise InputError(path, "DICOM file holds no pixel data")
             # pydicom decodes elements lazily, so damaged headers fail here, not in dcmread.
@@ -512,6 +555,18 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
             raise InputError(path, "empty file (0 bytes)")
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
+    with open(path, "rb") as fh:
+        is_tiff_based = fh.read(4) in _TIFF_MAGIC  # DNG, CR2, NEF, ARW, PEF...
+    if is_tiff_based:
+        import tifffile
+
+        try:
+            with _quiet_decoder(), tifffile.TiffFile(path) as tif:
+                _check_tiff_structure(path, tif, limit, what="camera raw file")
+        except InputError:
+            raise
+        except Exception:  # noqa: BLE001 - a maker's variant tifffile cannot parse; LibRaw decides
+            pass
     chatter: list[str] = []
     try:
         with _quiet_decoder() as chatter, rawpy.imread(str(path)) as raw:
@@ -546,6 +601,9 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
         raise InputError(path, "too large to decode in memory") from None
     except Exception as exc:  # rawpy.LibRawError and friends
         detail = _last_line(chatter) or _short(exc)
+        if "memory" in detail.lower():
+            # LibRaw's own allocation guard refused sizes derived from damaged fields.
+            detail = "damaged size fields (the decoder refused to allocate for them)"
         raise InputError(path, f"unreadable camera raw file ({_short(detail)})") from None
     if white <= float(np.max(black)):
         raise InputError(path, f"white level {white} is not above the black level {float(np.max(black))}")
@@ -664,7 +722,18 @@ def atomic_write(path: str | os.PathLike, writer, *, inputs: Iterable[str | os.P
             raise OutputError(f"{path}: cannot write ({exc.strerror or _short(exc)})") from None
         raise
     _fsync_folder(parent)
+    _remove_stale_parts(parent, path.name)
     return path
+
+
+def _remove_stale_parts(folder: Path, name: str) -> None:
+    """Delete ``.<name>.*.part`` files left by a process killed while writing ``name``.
+
+    Only the just-finished output's own leftovers are touched (one writer per final name).
+    """
+    for stale in folder.glob(f".{glob_escape(name)}.*.part"):
+        with contextlib.suppress(OSError):
+            stale.unlink()
 
 
 def _fsync_folder(folder: Path) -> None:
