@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.signal import fftconvolve
 
+from napari_dslrxr._widgets._common import viewer_camera
 from napari_dslrxr._widgets.deconvolution import DeconvolutionWidget
 
 pytestmark = pytest.mark.gui
@@ -71,8 +72,8 @@ def test_whole_image_is_sharper_than_the_input(docked, wait_for_worker):
 def test_slider_preview_shows_the_visible_region_and_reacts(docked, qtbot, wait_for_worker, errors_shown):
     viewer, widget, sharp, blurred = docked
     layer = viewer.layers["bars"]
-    viewer.camera.center = (0, 120, 140)  # look at part of the image only
-    viewer.camera.zoom = 4.0
+    viewer_camera(viewer).center = (0, 120, 140)  # look at part of the image only
+    viewer_camera(viewer).zoom = 4.0
     widget._live.value = True
     qtbot.waitUntil(lambda: widget.last_preview is not None or bool(errors_shown), timeout=20_000)
     assert not errors_shown

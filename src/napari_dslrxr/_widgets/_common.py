@@ -179,19 +179,52 @@ def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: s
             for key in ("scale", "translate", "metadata", "colormap", "opacity", "visible"):
                 if key in kwargs:
                     setattr(layer, key, kwargs[key])
-            if layer_type == "image" and "contrast_limits" in kwargs:
-                layer.contrast_limits = kwargs["contrast_limits"]
-            elif layer_type == "image":
-                layer.reset_contrast_limits()
+            if layer_type == "image":
+                limits = kwargs.get("contrast_limits") or robust_limits(data)
+                layer.contrast_limits_range = limits
+                layer.contrast_limits = limits
             return layer
         viewer.layers.remove(layer)
+    if layer_type == "image" and "contrast_limits" not in kwargs:
+        kwargs["contrast_limits"] = robust_limits(data)
     add = getattr(viewer, f"add_{layer_type}")
     return add(data, name=name, **kwargs)
+
+
+def robust_limits(data: np.ndarray, percentiles: tuple[float, float] = (0.5, 99.5)) -> tuple[float, float]:
+    """Display range of an image ignoring outliers (pulses, unexposed pixels): percentiles of
+    a subsample of at most ~1e6 values."""
+    flat = np.asarray(data).reshape(-1)
+    step = max(1, flat.size // 1_000_000)
+    sample = flat[::step]
+    sample = sample[np.isfinite(sample)] if sample.dtype.kind == "f" else sample
+    if sample.size == 0:
+        return (0.0, 1.0)
+    lo, hi = (float(v) for v in np.percentile(sample, percentiles))
+    return (lo, hi) if hi > lo else (lo, lo + 1.0)
+
+
+def readout_label() -> Any:
+    """A magicgui Label for a widget's results: selectable, word-wrapped (keeps the dock narrow)."""
+    from magicgui.widgets import Label
+    from qtpy.QtCore import Qt
+
+    label = Label(value="")
+    label.native.setWordWrap(True)
+    label.native.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+    return label
 
 
 def same_geometry(reference: napari.layers.Layer) -> dict:
     """Keyword arguments that place a derived layer over ``reference`` in world coordinates."""
     return {"scale": tuple(reference.scale[-2:]), "translate": tuple(reference.translate[-2:])}
+
+
+def viewer_camera(viewer: napari.Viewer):
+    """The viewer's camera model (``viewer.scene.camera`` since napari 0.9, else ``viewer.camera``)."""
+    scene = getattr(viewer, "scene", None)
+    camera = getattr(scene, "camera", None)
+    return camera if camera is not None else viewer.camera
 
 
 def visible_region(viewer: napari.Viewer, layer: napari.layers.Layer,
@@ -205,8 +238,9 @@ def visible_region(viewer: napari.Viewer, layer: napari.layers.Layer,
     """
     shape = tuple(shape or np.shape(layer.data))[:2]
     height_px, width_px = viewer.canvas.size
-    zoom = float(viewer.camera.zoom)
-    centre = np.asarray(viewer.camera.center[-2:], float)
+    camera = viewer_camera(viewer)
+    zoom = float(camera.zoom)
+    centre = np.asarray(camera.center[-2:], float)
     half = np.array([height_px, width_px], float) / (2.0 * zoom)
     scale = np.asarray(layer.scale[-2:], float)
     translate = np.asarray(layer.translate[-2:], float)

@@ -1,9 +1,10 @@
 """Contrast widget: dynamic range, latitude, detail and bone-contrast sliders with live preview.
 
-Wraps the display stages of the core (:func:`napari_dslrxr.core.pipeline.enhance_radiograph`:
-value-of-interest scaling, :mod:`~napari_dslrxr.core.dynamic_range` latitude reduction,
-:mod:`~napari_dslrxr.core.contrast` MUSICA-style multiscale contrast and the sigmoid display
-curve). Two kinds of input:
+Wraps the display stages of the core, as :func:`napari_dslrxr.core.pipeline.enhance_radiograph`
+chains them: value-of-interest scaling, :mod:`~napari_dslrxr.core.dynamic_range` latitude
+reduction, :mod:`~napari_dslrxr.core.contrast` MUSICA-style multiscale contrast and the sigmoid
+display curve. The value-of-interest scaling does not depend on the sliders, so it is done
+once per input and cached; a slider move runs only the three later stages. Two kinds of input:
 
 * **linear counts** (a camera frame, flat-fielded or not): converted once to the
   value-of-interest scaled attenuation image and the screen mask by the core pipeline with
@@ -26,14 +27,15 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, Label, PushButton, create_widget
+from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, PushButton, create_widget
 
-from ..core.contrast import ContrastParams
-from ..core.dynamic_range import DynamicRangeParams
 from ..core.errors import ParameterError
 from ..core.params import PipelineParams
-from ..core.pipeline import enhance_radiograph, process_frame
-from ._common import debounced, guarded, run_in_worker, show_layer
+from ..core.contrast import enhance_contrast
+from ..core.dynamic_range import reduce_dynamic_range, sigmoid_lut
+from ..core.pipeline import process_frame
+from ..core.region import voi_window
+from ._common import debounced, guarded, readout_label, run_in_worker, show_layer
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -56,37 +58,44 @@ SLIDERS = (
 
 @dataclass
 class PreparedInput:
-    """The display-oriented image the sliders act on, with its region and a preview copy."""
+    """The value-of-interest scaled image the sliders act on, its region and a preview copy."""
 
-    image: np.ndarray  # float32 (H, W): VOI-scaled attenuation, or the display radiograph
+    image: np.ndarray  # float32 (H, W), about 0..1 over the values of interest
     mask: np.ndarray | None  # bool (H, W) screen region, or None (all pixels)
     small: np.ndarray  # area-downsampled image for the preview
     small_mask: np.ndarray | None
     factor: float  # full-size pixels per preview pixel
 
 
-def prepare_input(data: np.ndarray, kind: str, max_pixels: int) -> PreparedInput:
-    """Bring a layer's data into the form the display stages take (runs in the worker).
+def prepare_input(data: np.ndarray, kind: str, max_pixels: int, params: PipelineParams | None = None) -> PreparedInput:
+    """Bring a layer's data to the value-of-interest scaled form the display stages take.
 
-    Linear counts go through the core pipeline with impulse removal, flat field, dynamic
-    range and contrast switched off (no black level subtracted: the layer is taken as
-    counts above black), giving the value-of-interest scaled attenuation and the screen mask.
+    Runs once per input (in the worker); the sliders do not change it. Linear counts go
+    through the core pipeline with impulse removal, flat field, dynamic range and contrast
+    switched off (no black level subtracted: the layer is taken as counts above black), giving
+    the VOI-scaled attenuation and the screen mask. A display radiograph is VOI-scaled with
+    :func:`napari_dslrxr.core.region.voi_window` as :func:`~napari_dslrxr.core.pipeline.enhance_radiograph`
+    does.
     """
+    params = params or PipelineParams()
     data = np.asarray(data)
     if kind == LINEAR:
-        params = PipelineParams()
-        for name in ("passes_h", "passes_s", "passes_v", "passes_grey"):
-            setattr(params.impulse, name, 0)
-        params.flatfield.enabled = False
-        params.region.rectify = False
-        params.dynamic_range.enabled = False
-        params.contrast.enabled = False
-        result = process_frame(data, black_level=0.0, params=params, keep_intermediates=True)
+        linear = dataclasses.replace(params, impulse=dataclasses.replace(
+            params.impulse, passes_h=0, passes_s=0, passes_v=0, passes_grey=0))
+        linear.flatfield = dataclasses.replace(params.flatfield, enabled=False)
+        linear.region = dataclasses.replace(params.region, rectify=False)
+        linear.dynamic_range = dataclasses.replace(params.dynamic_range, enabled=False)
+        linear.contrast = dataclasses.replace(params.contrast, enabled=False)
+        result = process_frame(data, black_level=0.0, params=linear, keep_intermediates=True)
         image, mask = result.intermediates["attenuation"], result.region.mask
         if mask.all():
             mask = None
     else:
         image = (data.mean(axis=2) if data.ndim == 3 else data).astype(np.float32)
+        lo, hi = voi_window(image, low_percentile=params.region.voi_low_percentile,
+                            high_percentile=params.region.voi_high_percentile,
+                            exclude_direct_exposure=params.region.exclude_direct_exposure)
+        image = (image - np.float32(lo)) * np.float32(1.0 / (hi - lo))
         mask = None
     factor = max(1.0, float(np.sqrt(image.size / max_pixels)))
     if factor > 1.0:
@@ -102,12 +111,23 @@ def prepare_input(data: np.ndarray, kind: str, max_pixels: int) -> PreparedInput
 
 def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: PipelineParams,
            max_pixels: int, full: bool) -> tuple[PreparedInput, np.ndarray]:
-    """Worker job: prepare the input if needed, then run the core display stages on it."""
+    """Worker job: prepare the input if needed, then the core display stages on it.
+
+    The stages after value-of-interest scaling, in the pipeline's order: latitude reduction
+    (:func:`~napari_dslrxr.core.dynamic_range.reduce_dynamic_range`), multiscale contrast
+    (:func:`~napari_dslrxr.core.contrast.enhance_contrast`) and the display curve
+    (:func:`~napari_dslrxr.core.dynamic_range.sigmoid_lut`); outside the screen region is
+    black (or white), as in the pipeline's output.
+    """
     if prepared is None:
-        prepared = prepare_input(data, kind, max_pixels)
-    if full:
-        return prepared, enhance_radiograph(prepared.image, params, prepared.mask)
-    return prepared, enhance_radiograph(prepared.small, params, prepared.small_mask)
+        prepared = prepare_input(data, kind, max_pixels, params)
+    image, mask = (prepared.image, prepared.mask) if full else (prepared.small, prepared.small_mask)
+    display = reduce_dynamic_range(image, mask, params.dynamic_range)
+    display = enhance_contrast(display, params.contrast, mask)
+    display = sigmoid_lut(display, params.dynamic_range)
+    if mask is not None:
+        display[~mask] = 0.0 if params.output.outside_region == "black" else 1.0
+    return prepared, display
 
 
 class ContrastWidget(Container):
@@ -128,7 +148,7 @@ class ContrastWidget(Container):
             self._sliders[(section, name)] = FloatSlider(value=value, min=lo, max=hi, step=0.01, label=label)
         self._live = CheckBox(value=True, label="live preview")
         self._apply = PushButton(text="Apply at full resolution")
-        self._readout = Label(value="")
+        self._readout = readout_label()
         super().__init__(widgets=[self._image, self._kind, *self._sliders.values(), self._live, self._apply,
                                   self._readout])
         self._base = defaults  # keeps the fields without a slider (and the other sections)
@@ -178,13 +198,14 @@ class ContrastWidget(Container):
         return layer
 
     def _cached(self, layer) -> PreparedInput | None:
-        key = (id(layer), id(layer.data), self._kind.value, self.preview_max_pixels)
+        key = (id(layer), id(layer.data), self._kind.value, self.preview_max_pixels, repr(self._base.region))
         if self._prepared is not None and self._prepared[0] == key:
             return self._prepared[1]
         return None
 
     def _store(self, layer, kind: str, prepared: PreparedInput) -> None:
-        self._prepared = ((id(layer), id(layer.data), kind, self.preview_max_pixels), prepared)
+        self._prepared = ((id(layer), id(layer.data), kind, self.preview_max_pixels, repr(self._base.region)),
+                          prepared)
 
     # -- live preview -------------------------------------------------------------------------------
     def update_preview(self) -> None:

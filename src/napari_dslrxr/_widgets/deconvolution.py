@@ -17,14 +17,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, FloatLogSlider, FloatSpinBox, Label,
+from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, FloatLogSlider, FloatSpinBox,
                               PushButton, create_widget)
 
 from ..core.deconvolution import (METHODS, DeconvolutionParams, deconvolve, deconvolve_steps,
                                   estimate_regularisation)
-from ..core.psf import load_psf
 from ..core.errors import ParameterError
-from ._common import debounced, guarded, run_in_worker, show_layer, visible_region
+from ..core.psf import load_psf
+from ._common import debounced, guarded, readout_label, run_in_worker, show_layer, viewer_camera, visible_region
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -66,7 +66,7 @@ class DeconvolutionWidget(Container):
         self._auto = PushButton(text="Estimate regularisation")
         self._live = CheckBox(value=False, label="live preview (visible region)")
         self._apply = PushButton(text="Apply to the whole image")
-        self._readout = Label(value="")
+        self._readout = readout_label()
         super().__init__(widgets=[self._image, self._kernel_layer, self._psf_file, self._sod, self._sdd,
                                   self._method, self._reg, self._auto, self._live, self._apply, self._readout])
         self.result: np.ndarray | None = None
@@ -81,8 +81,9 @@ class DeconvolutionWidget(Container):
             widget.changed.connect(self._trigger_preview)
         self._auto.changed.connect(self.estimate)
         self._apply.changed.connect(self.run)
-        viewer.camera.events.center.connect(self._trigger_preview)
-        viewer.camera.events.zoom.connect(self._trigger_preview)
+        camera = viewer_camera(viewer)
+        camera.events.center.connect(self._trigger_preview)
+        camera.events.zoom.connect(self._trigger_preview)
         register_stage_widget(viewer, self)
 
     # -- parameters (TOML section [deblur]) -----------------------------------------------------

@@ -14,12 +14,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import CheckBox, Container, FileEdit, FloatSpinBox, Label, PushButton, create_widget
+from magicgui.widgets import CheckBox, Container, FileEdit, FloatSpinBox, PushButton, create_widget
 
+from ..core.errors import ParameterError
 from ..core.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
 from ..core.io import read_image
-from ..core.errors import ParameterError
-from ._common import debounced, guarded, notify_error, run_in_worker, same_geometry, show_layer
+from ._common import debounced, guarded, notify_error, readout_label, run_in_worker, same_geometry, show_layer
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -60,7 +60,7 @@ class FlatFieldWidget(Container):
         self._clean = CheckBox(value=defaults.clean_flat_pulses, label="clean pulses in flat/dark")
         self._preview = CheckBox(value=False, label="live preview")
         self._apply = PushButton(text="Apply flat field")
-        self._readout = Label(value="")
+        self._readout = readout_label()
         super().__init__(widgets=[self._image, self._flat, self._flat_file, self._dark, self._dark_file,
                                   self._smoothing, self._min_fraction, self._clean, self._preview,
                                   self._apply, self._readout])

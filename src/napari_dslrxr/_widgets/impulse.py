@@ -12,11 +12,11 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, Label, PushButton, SpinBox, create_widget
+from magicgui.widgets import ComboBox, Container, PushButton, SpinBox, create_widget
 
-from ..core.impulse import ImpulseParams, ImpulseResult, remove_impulses
 from ..core.errors import ParameterError
-from ._common import guarded, run_in_worker, same_geometry, show_layer
+from ..core.impulse import ImpulseParams, ImpulseResult, remove_impulses
+from ._common import guarded, readout_label, run_in_worker, same_geometry, show_layer
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -58,7 +58,7 @@ class ImpulseWidget(Container):
         }
         self._window = ComboBox(choices=[3, 5], value=defaults.window_px, label="median window (px)")
         self._run_button = PushButton(text="Remove impulses")
-        self._readout = Label(value="")
+        self._readout = readout_label()
         super().__init__(widgets=[self._image, self._space, *self._passes.values(), self._window,
                                   self._run_button, self._readout])
         self._extra: dict = {}

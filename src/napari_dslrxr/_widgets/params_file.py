@@ -14,11 +14,11 @@ import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from magicgui.widgets import Container, FileEdit, Label, PushButton
+from magicgui.widgets import Container, FileEdit, PushButton
 
 from ..core.errors import ParameterError
 from ..core.params import PipelineParams, load_params, save_params, validate_params
-from ._common import guarded, notify_info
+from ._common import guarded, notify_info, readout_label
 from ._registry import stage_widgets
 
 if TYPE_CHECKING:
@@ -67,7 +67,8 @@ class ParamsFileWidget(Container):
         self._path = FileEdit(mode="w", filter="*.toml", label="parameter file", value="params.toml")
         self._load = PushButton(text="Load")
         self._save = PushButton(text="Save")
-        self._readout = Label(value="sections: none loaded (defaults)")
+        self._readout = readout_label()
+        self._readout.value = "sections: none loaded (defaults)"
         super().__init__(widgets=[self._path, self._load, self._save, self._readout])
         self.params: PipelineParams = PipelineParams()
         self._load.changed.connect(self.load)
