@@ -39,9 +39,14 @@ def test_pulses_removed_from_reference_frame(rng):
     flat = rng.poisson(1000, (64, 64)).astype(np.float32)
     flat[10, 10] += 5000
     flat[30:32, 40:42] += 3000
-    cleaned, n = remove_bright_pulses(flat)
-    assert cleaned[10, 10] < 1200 and cleaned[30:32, 40:42].max() < 1200
-    assert n < 100
+    for frame in (flat, flat.astype(np.uint16), np.stack([flat.astype(np.uint16)] * 3, axis=-1)):
+        cleaned, n = remove_bright_pulses(frame)
+        assert cleaned.dtype == np.float32 and cleaned.shape == frame.shape
+        assert cleaned[10, 10].max() < 1200 and cleaned[30:32, 40:42].max() < 1200
+        assert n < 100 * (3 if frame.ndim == 3 else 1)
+        untouched = np.ones(flat.shape, bool)
+        untouched[7:14, 7:14] = untouched[27:35, 37:45] = False
+        assert np.array_equal(cleaned[untouched], frame[untouched].astype(np.float32))  # switching filter
 
 
 def test_mismatched_flat_shape_is_an_input_error():

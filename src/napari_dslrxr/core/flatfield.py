@@ -113,29 +113,64 @@ def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0) -> tup
     arr = np.asarray(frame)
     if arr.dtype not in (np.uint16, np.float32):
         arr = arr.astype(np.float32)
-    if arr.ndim == 3:
-        out = np.empty(arr.shape, np.float32)
-        total = 0
-        for c in range(arr.shape[2]):
-            out[..., c], n = remove_bright_pulses(arr[..., c], threshold_sigma)
-            total += n
-        return out, total
-    # the median runs on the native dtype (uint16 is about twice as fast as float32)
-    med = cv2.medianBlur(np.ascontiguousarray(arr), 5).astype(np.float32)
-    arr = arr.astype(np.float32)
-    residual = arr - med
+    arr = np.ascontiguousarray(arr)
+    # whole-array operations (all channels at once): per-channel strided slices are slow
+    if arr.ndim == 3 and arr.shape[2] not in (1, 3, 4):
+        raise InputError("reference frame", f"unsupported channel count {arr.shape[2]}")
+    med = cv2.medianBlur(arr, 5)  # native dtype: uint16 is about twice as fast as float32
+    if med.ndim < arr.ndim:
+        med = med[..., None]
+    if arr.dtype == np.uint16:
+        return _remove_bright_pulses_u16(arr, med, threshold_sigma)
+    values = arr.astype(np.float32)
+    med = med.astype(np.float32)
+    residual = values - med
     # photon noise grows with the level (the offset only adds a constant): scale by sqrt(level)
     noise_scale = np.maximum(med, 1.0)
     np.sqrt(noise_scale, out=noise_scale)
-    step = max(1, int(np.sqrt(arr.size / 250_000)))  # the noise scale from a regular subsample
+    step = max(1, int(np.sqrt(residual.shape[0] * residual.shape[1] / 250_000)))
     scaled = residual[::step, ::step] / noise_scale[::step, ::step]
-    sigma = 1.4826 * float(np.median(np.abs(scaled - np.median(scaled)))) + 1e-12
-    noise_scale *= np.float32(threshold_sigma * sigma)
+    if scaled.ndim == 3:
+        centre = np.median(scaled, axis=(0, 1))
+        sigma = 1.4826 * np.median(np.abs(scaled - centre), axis=(0, 1)) + 1e-12
+    else:
+        sigma = 1.4826 * float(np.median(np.abs(scaled - np.median(scaled)))) + 1e-12
+    noise_scale *= np.asarray(threshold_sigma * sigma, np.float32)
     pulses = residual > noise_scale
     del noise_scale
-    pulses = cv2.dilate(pulses.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & (residual > 0)
-    arr[pulses] = med[pulses]  # arr is a float32 copy already
-    return arr, int(np.count_nonzero(pulses))
+    pulses = cv2.dilate(pulses.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool).reshape(residual.shape)
+    pulses &= residual > 0
+    np.copyto(values, med, where=pulses)
+    return values, int(np.count_nonzero(pulses))
+
+
+def _remove_bright_pulses_u16(arr: np.ndarray, med: np.ndarray, threshold_sigma: float) -> tuple[np.ndarray, int]:
+    """uint16 path of :func:`remove_bright_pulses`: thresholds from a look-up table of the median.
+
+    The test ``x > m + k sigma sqrt(m)`` is evaluated as ``x > T[m]`` with ``T`` tabulated over
+    all 65536 levels (per channel), so the full-size work stays in uint16.
+    """
+    step = max(1, int(np.sqrt(arr.shape[0] * arr.shape[1] / 250_000)))
+    a_sub = arr[::step, ::step].astype(np.float32)
+    m_sub = med[::step, ::step].astype(np.float32)
+    scaled = (a_sub - m_sub) / np.sqrt(np.maximum(m_sub, 1.0))
+    levels = np.arange(65536, dtype=np.float64)
+    values = arr.copy()
+    n_channels = arr.shape[2] if arr.ndim == 3 else 1
+    pulses = np.empty(arr.shape, bool)
+    for c in range(n_channels):
+        sc = scaled[..., c] if arr.ndim == 3 else scaled
+        sigma = 1.4826 * float(np.median(np.abs(sc - np.median(sc)))) + 1e-12
+        table = np.minimum(levels + threshold_sigma * sigma * np.sqrt(np.maximum(levels, 1.0)), 65535)
+        table = np.floor(table).astype(np.uint16)
+        if arr.ndim == 3:
+            pulses[..., c] = arr[..., c] > table[med[..., c]]
+        else:
+            pulses[...] = arr > table[med]
+    pulses = cv2.dilate(pulses.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool).reshape(arr.shape)
+    pulses &= arr > med
+    np.copyto(values, med, where=pulses)
+    return values.astype(np.float32), int(np.count_nonzero(pulses))
 
 
 def _as_float_frames(frames: Sequence[np.ndarray], what: str) -> list[np.ndarray]:
@@ -237,16 +272,18 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
         denominator = cv2.GaussianBlur(denominator, (0, 0), float(params.flat_smoothing_px),
                                        borderType=cv2.BORDER_REFLECT)
     chans = denominator.reshape(denominator.shape[0], denominator.shape[1], -1)
+    step = max(1, int(np.sqrt(chans.shape[0] * chans.shape[1] / 1_000_000)))
+    sub = chans[::step, ::step]  # statistics from a regular subsample
     scale = np.empty(chans.shape[2], np.float32)
+    floors = np.empty(chans.shape[2], np.float32)
     for c in range(chans.shape[2]):
-        plane = chans[..., c]
-        top = float(np.percentile(plane[::4, ::4], 99.5))
+        plane = sub[..., c]
+        top = float(np.percentile(plane, 99.5))
         if not top > 0:
             raise InputError("flat frame", f"channel {c}: no exposed pixels (flat is not brighter than the dark offset)")
-        floor = max(params.min_flat_fraction * top, 1e-6)
-        exposed = plane > 0.5 * top  # the exposed screen area: mean over it is the normalisation
-        scale[c] = float(plane[exposed].mean())
-        np.maximum(plane, floor, out=plane)
+        floors[c] = max(params.min_flat_fraction * top, 1e-6)
+        scale[c] = float(plane[plane > 0.5 * top].mean())  # the exposed screen area
+    np.maximum(chans, floors, out=chans)
     return FlatReference(offset=offset, denominator=denominator, scale=scale,
                          n_flats=n_flats, cleaned_pulses=cleaned)
 
