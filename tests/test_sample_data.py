@@ -31,3 +31,25 @@ def test_open_samples_in_napari(make_napari_viewer):
     viewer.open_sample("napari-dslrxr", "dslr_set")
     assert [layer.name for layer in viewer.layers] == ["dark", "flat", "DSLR radiograph"]
     assert viewer.layers["DSLR radiograph"].rgb
+
+
+def test_edge_samples_have_the_geometry_and_the_blur_they_claim():
+    from napari_dslrxr.core.edge_fit import synthesize_edge_image
+    from napari_dslrxr.core.psf import PSFModel
+
+    layers = samples.make_sample_edges()
+    assert [kw["name"] for _, kw, _ in layers] == ["edge SOD 500 mm", "edge SOD 900 mm"]
+    truth = PSFModel(**samples.EDGE_TRUTH)
+    for data, kw, kind in layers:
+        meta = kw["metadata"]
+        assert kind == "image" and data.shape == (128, 256) and meta["psf_truth"] == samples.EDGE_TRUTH
+        sod, sdd = meta["source_to_object_mm"], meta["source_to_detector_mm"]
+        expected = synthesize_edge_image(truth, sod, sdd, (128, 128), 3.0, low=0.1, high=1.0, supersample=4)
+        noise = data[:, :128] / samples.EDGE_BRIGHT_COUNTS - expected
+        # Poisson noise only: mean zero, variance = expected / counts.
+        assert abs(noise.mean()) < 2e-3
+        assert np.var(noise) == pytest.approx(np.mean(expected) / samples.EDGE_BRIGHT_COUNTS, rel=0.1)
+    # The nearer object (SOD 500) has the wider focal-spot blur: its edge rises more slowly.
+    (near, _, _), (far, _, _) = layers
+    rise = [np.abs(np.diff(img[40:90, 40:90].mean(axis=0))).max() for img in (near, far)]
+    assert rise[0] < 0.8 * rise[1]

@@ -120,6 +120,24 @@ def test_screenshot_contrast(make_napari_viewer, wait_for_worker):
     snap(viewer, "contrast")
 
 
+def test_screenshot_psf_edges(make_napari_viewer, wait_for_worker):
+    from napari_dslrxr._widgets.psf_edges import PSFEdgeWidget
+
+    viewer = _viewer(make_napari_viewer)
+    layers = _add(viewer, samples.make_sample_edges())
+    widget = PSFEdgeWidget(viewer)
+    viewer.window.add_dock_widget(widget, name="PSF from edges", area="right")
+    for layer in layers:
+        widget._image.value = layer
+        widget.roi_layer().data = [np.array([[32, 32], [32, 96], [96, 96], [96, 32]], float),
+                                   np.array([[32, 160], [32, 224], [96, 224], [96, 160]], float)]
+    layers[0].visible = viewer.layers["edge SOD 500 mm ROIs"].visible = False
+    wait_for_worker(widget.run(), timeout_ms=120_000)
+    camera = viewer_camera(viewer)
+    camera.center, camera.zoom = (0, 64, 200), 1.5  # the edge image and the kernel beside it
+    snap(viewer, "psf_edges")
+
+
 def test_screenshot_all_widgets_docked(make_napari_viewer, monkeypatch):
     """``dslrxr view`` layout: the sample radiograph and every widget tabbed on the right."""
     import napari

@@ -23,6 +23,10 @@ if TYPE_CHECKING:
 _LOG = logging.getLogger(__name__)
 
 
+class WorkCancelled(DslrxrError):
+    """Raised inside a worker (e.g. from a core progress callback) when the user cancels."""
+
+
 # --------------------------------------------------------------------------- notifications
 
 
@@ -149,7 +153,13 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
                 on_finished()
 
     worker.returned.connect(_returned)
-    worker.errored.connect(lambda exc: notify_error(exc, context=desc))
+    def _errored(exc: BaseException) -> None:
+        if isinstance(exc, WorkCancelled):
+            notify_info(f"{desc}: cancelled")
+        else:
+            notify_error(exc, context=desc)
+
+    worker.errored.connect(_errored)
     worker.finished.connect(_finished)
     worker.start()
     return worker
@@ -211,6 +221,7 @@ def readout_label() -> Any:
 
     label = Label(value="")
     label.native.setWordWrap(True)
+    label.native.setMinimumWidth(300)
     label.native.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
     return label
 

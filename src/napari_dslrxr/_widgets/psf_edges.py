@@ -1,0 +1,285 @@
+"""Edge ROI picker for PSF fitting, over :func:`napari_dslrxr.core.edge_fit.fit_edges`.
+
+Workflow: choose an edge radiograph, enter its source-to-object and source-to-detector
+distances (kept in the layer's metadata, so each image keeps its own), press "Draw ROIs" and
+draw rectangles, each around one straight edge, in the Shapes layer ``"<image> ROIs"``. Do
+this for every image (at least two object distances to separate focal spot and detector
+blur). "Fit PSF" fits every rectangle of every image jointly in a thread worker (progress
+bar with cancel). The widget then shows the fitted parameters with their uncertainties, a
+plot of the measured versus fitted edge (ESF) and line (LSF) spread profiles of each ROI,
+and the blur kernel at the chosen image's geometry as the image layer ``"PSF kernel"``;
+"Save psf.json" writes the model with :func:`napari_dslrxr.core.psf.save_psf`.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from magicgui.widgets import ComboBox, Container, FileEdit, FloatSpinBox, PushButton, create_widget
+
+from ..core.edge_fit import EdgeImage, fit_edges
+from ..core.errors import ParameterError
+from ..core.psf import PSFModel, save_psf
+from ._common import WorkCancelled, guarded, notify_info, readout_label, run_in_worker, show_layer
+
+if TYPE_CHECKING:
+    import napari
+
+SOD_KEY, SDD_KEY = "source_to_object_mm", "source_to_detector_mm"
+SHAPES = {"exponential (p = 1, SABER)": 1.0, "Gaussian (p = 2)": 2.0}
+
+
+def roi_layer_name(image_name: str) -> str:
+    """Name of the Shapes layer holding the ROIs of an image layer."""
+    return f"{image_name} ROIs"
+
+
+def rectangles_to_rois(shapes: napari.layers.Shapes, image: napari.layers.Image) -> list[tuple[int, int, int, int]]:
+    """Pixel ROIs ``(r0, c0, r1, c1)`` (end exclusive) of the rectangles of ``shapes`` over ``image``.
+
+    Vertices go through world coordinates, so ROI layers with another scale or translation
+    than the image still land on the right pixels; each ROI is clipped to the image.
+    """
+    h, w = np.shape(image.data)[:2]
+    rois = []
+    for vertices, kind in zip(shapes.data, shapes.shape_type, strict=True):
+        if kind not in ("rectangle", "polygon"):
+            continue
+        points = np.array([image.world_to_data(shapes.data_to_world(v)) for v in np.asarray(vertices)])[:, -2:]
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        r0, c0 = (int(np.clip(np.floor(v + 0.5), 0, n)) for v, n in zip(lo, (h, w), strict=True))
+        r1, c1 = (int(np.clip(np.floor(v + 0.5), 0, n)) for v, n in zip(hi, (h, w), strict=True))
+        if r1 - r0 >= 8 and c1 - c0 >= 8:
+            rois.append((r0, c0, r1, c1))
+    return rois
+
+
+def grey(data: np.ndarray) -> np.ndarray:
+    """The layer data as a float32 grey image (colour: mean of the channels)."""
+    arr = np.asarray(data, np.float32)
+    return arr.mean(axis=2) if arr.ndim == 3 else arr
+
+
+class PSFEdgeWidget(Container):
+    """Draw edge ROIs over radiographs, enter distances, fit the PSF, show profiles and kernel."""
+
+    def __init__(self, viewer: napari.viewer.Viewer):
+        self._viewer = viewer
+        self._image = create_widget(annotation="napari.layers.Image", label="edge image")
+        self._sod = FloatSpinBox(value=1000.0, min=1.0, max=1e5, step=10.0, label="source-object (mm)")
+        self._sdd = FloatSpinBox(value=1100.0, min=1.0, max=1e5, step=10.0, label="source-detector (mm)")
+        self._draw = PushButton(text="Draw ROIs on this image")
+        self._pitch = FloatSpinBox(value=0.1, min=1e-4, max=100.0, step=0.01, label="pixel pitch (mm)")
+        self._shape = ComboBox(choices=list(SHAPES), value=next(iter(SHAPES)), label="profile")
+        self._fit = PushButton(text="Fit PSF")
+        self._cancel = PushButton(text="Cancel fit", enabled=False)
+        self._path = FileEdit(mode="w", filter="*.json", label="save as", value="psf.json")
+        self._save = PushButton(text="Save psf.json", enabled=False)
+        self._status = readout_label()
+        self._readout = readout_label()
+        super().__init__(widgets=[self._image, self._sod, self._sdd, self._draw, self._pitch, self._shape,
+                                  self._status, self._fit, self._cancel, self._readout, self._path, self._save])
+        self.model: PSFModel | None = None
+        self.edges_used: list[tuple[str, tuple[int, int, int, int]]] = []
+        self._cancel_event = threading.Event()
+        self._worker = None
+        self._figure, self._canvas = self._make_plot()
+        self._image.changed.connect(self._image_chosen)
+        self._sod.changed.connect(self._store_distances)
+        self._sdd.changed.connect(self._store_distances)
+        self._draw.changed.connect(self.roi_layer)
+        self._fit.changed.connect(self.run)
+        self._cancel.changed.connect(self.cancel)
+        self._save.changed.connect(self.save)
+        viewer.layers.events.inserted.connect(self._refresh_status)
+        viewer.layers.events.removed.connect(self._refresh_status)
+        self._image_chosen()
+
+    # -- the profile plot ----------------------------------------------------------------------------
+    def _make_plot(self):
+        from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+        from matplotlib.figure import Figure
+
+        figure = Figure(figsize=(4.0, 2.6), dpi=80, tight_layout=True)
+        canvas = FigureCanvasQTAgg(figure)
+        canvas.setMinimumHeight(200)
+        self.native.layout().addWidget(canvas)
+        return figure, canvas
+
+    def plot_profiles(self, model: PSFModel) -> None:
+        """Measured (dots) versus fitted (lines) ESF and LSF of every ROI."""
+        self._figure.clear()
+        ax_esf, ax_lsf = self._figure.subplots(1, 2)
+        for i, edge in enumerate(model.fit_report.get("edges", [])):
+            prof = edge["profile"]
+            colour = f"C{i % 10}"
+            label = f"{edge['name']}"
+            ax_esf.plot(prof["distance_px"], prof["esf_measured"], ".", ms=2, color=colour, alpha=0.5)
+            ax_esf.plot(prof["distance_px"], prof["esf_fitted"], "-", lw=1, color=colour, label=label)
+            ax_lsf.plot(prof["distance_px"], prof["lsf_measured"], ".", ms=2, color=colour, alpha=0.5)
+            ax_lsf.plot(prof["distance_px"], prof["lsf_fitted"], "-", lw=1, color=colour)
+        ax_esf.set(title="edge spread (dots: measured)", xlabel="distance (px)", xlim=(-15, 15))
+        ax_lsf.set(title="line spread", xlabel="distance (px)", xlim=(-15, 15))
+        ax_esf.legend(fontsize=6, loc="lower right")
+        self._canvas.draw()
+
+    # -- per-image distances and ROI layers -----------------------------------------------------------
+    def _image_chosen(self, *_args) -> None:
+        layer = self._image.value
+        if layer is None:
+            return
+        meta = layer.metadata
+        with self._sod.changed.blocked(), self._sdd.changed.blocked():
+            self._sod.value = float(meta.get(SOD_KEY, self._sod.value))
+            self._sdd.value = float(meta.get(SDD_KEY, self._sdd.value))
+        pitch = meta.get("pixel_pitch_mm") or (meta.get("file_metadata", {}).get("pixel_spacing_mm") or [None])[0]
+        if pitch:
+            self._pitch.value = float(pitch)
+        self._store_distances()
+
+    def _store_distances(self, *_args) -> None:
+        layer = self._image.value
+        if layer is not None:
+            layer.metadata[SOD_KEY] = float(self._sod.value)
+            layer.metadata[SDD_KEY] = float(self._sdd.value)
+        self._refresh_status()
+
+    @guarded("PSF edge ROIs")
+    def roi_layer(self) -> napari.layers.Shapes:
+        """The Shapes layer of the chosen image's ROIs (created if needed), in rectangle mode."""
+        image = self._image.value
+        if image is None:
+            raise ParameterError("choose an edge image layer")
+        name = roi_layer_name(image.name)
+        if name in self._viewer.layers:
+            shapes = self._viewer.layers[name]
+        else:
+            shapes = self._viewer.add_shapes(name=name, shape_type="rectangle", edge_color="yellow",
+                                             face_color="transparent", edge_width=2,
+                                             scale=tuple(image.scale[-2:]), translate=tuple(image.translate[-2:]))
+            shapes.events.data.connect(self._refresh_status)
+        self._viewer.layers.selection.active = shapes
+        shapes.mode = "add_rectangle"
+        return shapes
+
+    def collect_edges(self) -> list[EdgeImage]:
+        """One :class:`EdgeImage` per rectangle over every image that has an ROI layer."""
+        from napari.layers import Image, Shapes
+
+        edges, used = [], []
+        for layer in list(self._viewer.layers):
+            if not isinstance(layer, Image):
+                continue
+            name = roi_layer_name(layer.name)
+            if name not in self._viewer.layers or not isinstance(self._viewer.layers[name], Shapes):
+                continue
+            rois = rectangles_to_rois(self._viewer.layers[name], layer)
+            if not rois:
+                continue
+            sod, sdd = layer.metadata.get(SOD_KEY), layer.metadata.get(SDD_KEY)
+            if sod is None or sdd is None:
+                raise ParameterError(f"{layer.name}: enter its source-object and source-detector distances")
+            data = grey(layer.data)
+            for k, roi in enumerate(rois):
+                edges.append(EdgeImage(image=data, source_to_object_mm=float(sod), source_to_detector_mm=float(sdd),
+                                       roi=roi, name=f"{layer.name} #{k + 1}"))
+                used.append((layer.name, roi))
+        self.edges_used = used
+        return edges
+
+    def _refresh_status(self, *_args: Any) -> None:
+        try:
+            from napari.layers import Image
+        except ImportError:  # pragma: no cover
+            return
+        lines = []
+        for layer in list(self._viewer.layers):
+            name = roi_layer_name(layer.name)
+            if isinstance(layer, Image) and name in self._viewer.layers:
+                n = len(self._viewer.layers[name].data)
+                lines.append(f"{layer.name}: {n} ROI(s), SOD {layer.metadata.get(SOD_KEY, '?')} mm, "
+                             f"SDD {layer.metadata.get(SDD_KEY, '?')} mm")
+        try:
+            self._status.value = "\n".join(lines) or "no ROIs drawn yet"
+        except RuntimeError:  # widget already deleted while napari tears down
+            pass
+
+    # -- fit -------------------------------------------------------------------------------------------
+    @guarded("PSF fit")
+    def run(self):
+        """Fit all ROIs jointly in a thread worker; return the worker."""
+        edges = self.collect_edges()
+        if not edges:
+            raise ParameterError("draw at least one rectangle around an edge (press 'Draw ROIs')")
+        pitch, power = float(self._pitch.value), SHAPES[self._shape.value]
+        self._cancel_event.clear()
+        cancel = self._cancel_event
+
+        def progress(done: int, total: int) -> None:
+            if cancel.is_set():
+                raise WorkCancelled("PSF fit cancelled")
+
+        self._fit.enabled, self._cancel.enabled = False, True
+        self._readout.value = f"fitting {len(edges)} edge ROI(s)..."
+        self._worker = run_in_worker(fit_edges, edges, pitch, shape_power=power, progress=progress,
+                                     desc="PSF edge fit", on_returned=self._show, on_finished=self._done)
+        return self._worker
+
+    def cancel(self) -> None:
+        """Stop the running fit at its next optimiser iteration."""
+        self._cancel_event.set()
+
+    def _done(self) -> None:
+        self._fit.enabled, self._cancel.enabled = True, False
+        if self._readout.value.endswith("..."):
+            self._readout.value = "fit cancelled or failed (see notifications)"
+
+    def _show(self, model: PSFModel) -> None:
+        self.model = model
+        self._save.enabled = True
+        unc = model.uncertainty
+
+        def fmt(key: str) -> str:
+            value = getattr(model, key)
+            sd = unc.get(key)
+            return f"{value:.3g}" + (f" ± {sd:.2g}" if sd is not None and np.isfinite(sd) else "")
+
+        report = model.fit_report
+        self._readout.value = "\n".join([
+            f"focal spot FWHM x, y: {fmt('source_fwhm_x_mm')}, {fmt('source_fwhm_y_mm')} mm",
+            f"detector core FWHM: {fmt('detector_fwhm_core_mm')} mm, tail FWHM: {fmt('detector_fwhm_tail_mm')} mm",
+            f"core weight: {fmt('detector_weight_core')}",
+            f"residual rms {report.get('residual_rms', float('nan')):.3g} "
+            f"(noise {report.get('noise_rms_estimate', float('nan')):.3g}), "
+            f"{report.get('n_images', 0)} ROIs, {report.get('fit_time_s', 0):.1f} s",
+        ] + ([report["note"]] if "note" in report else []))
+        self.plot_profiles(model)
+        self.show_kernel(model)
+
+    def show_kernel(self, model: PSFModel) -> napari.layers.Image:
+        """The kernel at the chosen image's geometry, beside that image (``"PSF kernel"``)."""
+        image = self._image.value
+        kernel = model.kernel(float(self._sod.value), float(self._sdd.value), max_radius_px=64)
+        scale, translate = (1.0, 1.0), (0.0, 0.0)
+        if image is not None:
+            scale = tuple(np.asarray(image.scale[-2:], float))
+            translate = tuple(np.asarray(image.translate[-2:], float) + np.asarray(scale) * (0, np.shape(image.data)[1] + 8))
+        layer = show_layer(self._viewer, kernel, "PSF kernel", "image", colormap="magma", scale=scale,
+                           translate=translate, contrast_limits=(0.0, float(kernel.max())))
+        layer.gamma = 0.4  # show the tail
+        layer.metadata.update({SOD_KEY: float(self._sod.value), SDD_KEY: float(self._sdd.value),
+                               "psf": model.to_dict()})
+        return layer
+
+    @guarded("save psf.json")
+    def save(self) -> Path | None:
+        """Write the fitted model to the chosen path."""
+        if self.model is None:
+            raise ParameterError("fit the PSF first")
+        path = Path(self._path.value)
+        written = save_psf(self.model, path)
+        notify_info(f"PSF model saved to {written}")
+        return written
