@@ -197,7 +197,7 @@ def test_truncated_png_dng_and_dicom_are_refused(tmp_path, rng):
     io.write_png(tmp_path / "a.png", rng.integers(0, 65535, (64, 64)).astype(np.uint16))
     write_dng(tmp_path / "a.dng", rng.integers(0, 4000, (32, 48)).astype(np.uint16))
     write_dicom(tmp_path / "a.dcm", rng.integers(0, 4000, (32, 48)).astype(np.uint16))
-    for name, match in [("a.png", "corrupt or truncated PNG"), ("a.dng", "truncated camera raw file"),
+    for name, match in [("a.png", "corrupt or truncated PNG"), ("a.dng", "unreadable camera raw file"),
                         ("a.dcm", "DICOM")]:
         data = (tmp_path / name).read_bytes()
         cut = tmp_path / f"cut{os.path.splitext(name)[1]}"

@@ -185,3 +185,54 @@ def test_inputs_are_opened_read_only(batch, tmp_path, monkeypatch):
     assert modes, "the spy saw no input being opened"
     assert all(set(mode) <= set("rbt") for _, mode in modes), modes
     assert _checksums(batch) == before
+
+
+def test_sidecar_records_enough_to_reproduce_the_output(batch, tmp_path, capsys):
+    """Rebuild the parameter file from a sidecar alone, rerun, and get the recorded checksum."""
+    params = pytest.importorskip("napari_dslrxr.core.params")
+    config = tmp_path / "custom.toml"
+    custom = params.params_to_dict(params.PipelineParams())
+    custom["impulse"]["passes_grey"] = 2
+    custom["dynamic_range"]["latitude"] = 0.5
+    params.save_params(params.params_from_dict(custom), config)
+    src = batch / "frame_00.tif"
+    assert cli.main(["run", str(src), "-o", str(tmp_path / "a"), "-c", str(config)]) == 0, capsys.readouterr().err
+    record = json.loads((tmp_path / "a" / "frame_00_dslrxr.tif.json").read_text())
+    assert record["inputs"][0]["sha256"] == io.file_sha256(src)
+    assert record["version"] and record["environment"]["numpy"]
+    rebuilt = tmp_path / "rebuilt.toml"
+    params.save_params(params.params_from_dict(record["parameters"]), rebuilt)
+    assert cli.main(["run", str(src), "-o", str(tmp_path / "b"), "-c", str(rebuilt)]) == 0
+    assert io.file_sha256(tmp_path / "b" / "frame_00_dslrxr.tif") == record["output"]["sha256"]
+    # The defaults give another image, so the check above can fail.
+    assert cli.main(["run", str(src), "-o", str(tmp_path / "c")]) == 0
+    assert io.file_sha256(tmp_path / "c" / "frame_00_dslrxr.tif") != record["output"]["sha256"]
+
+
+def test_sidecar_records_the_psf_geometry_of_a_deblurred_output(batch, tmp_path, capsys):
+    """With --psf the output depends on the two distances: the sidecar must hold them."""
+    psf = pytest.importorskip("napari_dslrxr.core.psf")
+    model = psf.PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.3, source_fwhm_y_mm=0.3,
+                         detector_fwhm_core_mm=0.12, detector_fwhm_tail_mm=0.6, detector_weight_core=0.8)
+    psf_path = psf.save_psf(model, tmp_path / "psf.json")
+    code = cli.main(["run", str(batch / "frame_01.tif"), "-o", str(tmp_path / "o"), "--psf", str(psf_path),
+                     "--source-to-object-mm", "900", "--source-to-detector-mm", "1000"])
+    assert code == 0, capsys.readouterr().err
+    record = json.loads((tmp_path / "o" / "frame_01_dslrxr.tif.json").read_text())
+    assert io.file_sha256(psf_path) in [i["sha256"] for i in record["inputs"]]  # a checksummed input
+    numbers = set(_numbers(record["parameters"])) | set(_numbers(record["results"]))
+    if not {900.0, 1000.0} <= numbers:
+        pytest.xfail("known gap: 'dslrxr run' sidecars omit --source-to-object-mm/--source-to-detector-mm "
+                     "(core/pipeline.py, developer B)")
+
+
+def _numbers(value):
+    """Every number inside a JSON value."""
+    if isinstance(value, dict):
+        for v in value.values():
+            yield from _numbers(v)
+    elif isinstance(value, list):
+        for v in value:
+            yield from _numbers(v)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        yield float(value)

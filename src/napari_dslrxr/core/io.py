@@ -12,7 +12,11 @@ Conventions
   file's own units and dtype (counts), except where stated.
 * DICOM MONOCHROME1 is inverted to MONOCHROME2 (higher value = brighter on display).
 * Camera raw gives the linear demosaiced RGB (uint16, gamma 1, no auto-brightening, camera
-  white balance) and, separately, the CFA planes before demosaicing (black level subtracted).
+  white balance, camera colour space: no colour matrix, which would clip saturated channels;
+  ``(counts - black) * 65535 / (white - black)`` with the file's levels) and, separately, the
+  CFA planes before demosaicing (black level subtracted).
+* Every size a header declares is checked against ``DSLRXR_MAX_PIXELS`` (or ``max_pixels=``)
+  before any pixel buffer is allocated.
 """
 
 from __future__ import annotations
@@ -92,7 +96,8 @@ class RawFrame:
     white_level : int
         Saturation level of the mosaic (counts), read from the file.
     rgb_linear : ndarray, uint16, shape (H, W, 3)
-        Linear demosaiced RGB: camera white balance, gamma 1, no auto-brightening.
+        Linear demosaiced RGB: camera white balance and colour space, gamma 1, no
+        auto-brightening, scaled by the file's white level (never by the data maximum).
     camera : dict
         Make and model only (no serial number or owner; see :mod:`.provenance`).
     """
@@ -362,12 +367,15 @@ def read_image(path: str | os.PathLike, *, max_pixels: int | None = None,
     return read_raw(path, max_pixels=limit, with_planes=with_raw_planes)
 
 
-def _check_tiff_structure(path: Path, tif, limit: int, *, what: str = "TIFF", max_pages: int = 64) -> None:
+def _check_tiff_structure(path: Path, tif, limit: int, *, check_extent: bool = True,
+                          max_pages: int = 64) -> None:
     """Refuse a TIFF (or TIFF-based camera raw) whose tags promise more than the file holds.
 
-    Every page and SubIFD must declare at most ``limit`` pixels per image and per tile, and
-    its strips or tiles must lie inside the file: decoders allocate a buffer of the declared
-    byte count before reading, so a damaged count of 4 GB would otherwise be allocated.
+    Every page and SubIFD must declare at most ``limit`` pixels per image and per tile.
+    With ``check_extent`` (TIFF proper) the strips or tiles must also lie inside the file:
+    tifffile allocates a buffer of the declared byte count before reading, so a damaged
+    count of 4 GB would otherwise be allocated. Camera raw files are read by LibRaw, which
+    sizes its buffers from the image dimensions, and some makers write loose byte counts.
     """
     import tifffile
 
@@ -383,9 +391,9 @@ def _check_tiff_structure(path: Path, tif, limit: int, *, what: str = "TIFF", ma
             raise InputError(path, f"declared size {length}x{width} pixels (tiles "
                                    f"{page.tilelength}x{page.tilewidth}) exceeds the limit of {limit} "
                                    "pixels (set DSLRXR_MAX_PIXELS to raise it)")
-        for offset, count in zip(page.dataoffsets, page.databytecounts, strict=False):
+        for offset, count in zip(page.dataoffsets, page.databytecounts, strict=False) if check_extent else ():
             if int(offset) + int(count) > file_size:
-                raise InputError(path, f"corrupt or truncated {what} (image data up to byte "
+                raise InputError(path, f"corrupt or truncated TIFF (image data up to byte "
                                        f"{int(offset) + int(count)} but the file has {file_size})")
         if page.subifds:
             with contextlib.suppress(Exception):  # unreadable SubIFDs are the decoder's business
@@ -562,7 +570,7 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
 
         try:
             with _quiet_decoder(), tifffile.TiffFile(path) as tif:
-                _check_tiff_structure(path, tif, limit, what="camera raw file")
+                _check_tiff_structure(path, tif, limit, check_extent=False)
         except InputError:
             raise
         except Exception:  # noqa: BLE001 - a maker's variant tifffile cannot parse; LibRaw decides
