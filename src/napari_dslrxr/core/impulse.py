@@ -80,6 +80,14 @@ class ImpulseParams:
     bright_only : bool
         Pulses on photon-counting channels (grey, V, CFA) are bright only (direct X-ray hits
         on the sensor). H and S pulses are always two-sided.
+    min_contrast : float
+        Photon-counting channels only: a pulse must also exceed the local median by this
+        fraction of it (Weber contrast, 0 to 1; Frosio & Borghese 2004 visibility rule), so
+        statistically significant but invisible bumps on bright areas are kept.
+    neighbour_prior : float
+        Prior pulse probability of a pixel touching a detected pulse (0 < p < 1; the fitted
+        pulse rate applies elsewhere): pulses come as patches and tracks, so their fainter
+        rims are accepted at a lower significance (about 3 sigma at 0.5).
     posterior_threshold : float
         A pixel is a pulse when its posterior pulse probability exceeds this (0 < t < 1).
     min_saturation : float
@@ -101,6 +109,8 @@ class ImpulseParams:
     window_px: int = 5
     max_patch_px: int = 4
     bright_only: bool = True
+    min_contrast: float = 0.07
+    neighbour_prior: float = 0.5
     posterior_threshold: float = 0.5
     min_saturation: float = 0.05
     min_value_fraction: float = 0.02
@@ -119,6 +129,8 @@ class ImpulseParams:
         if not isinstance(self.bright_only, (bool, np.bool_)):
             raise ParameterError(f"impulse.bright_only: must be true or false, got {self.bright_only!r}")
         _check_float("posterior_threshold", self.posterior_threshold, 0.0, 1.0, open_ends=True)
+        _check_float("min_contrast", self.min_contrast, 0.0, 1.0)
+        _check_float("neighbour_prior", self.neighbour_prior, 0.0, 1.0, open_ends=True)
         _check_float("min_saturation", self.min_saturation, 0.0, 1.0)
         _check_float("min_value_fraction", self.min_value_fraction, 0.0, 1.0)
 
@@ -213,27 +225,43 @@ def _window_offsets(size_px: int) -> tuple[np.ndarray, np.ndarray]:
     return dr.ravel(), dc.ravel()
 
 
+def _window_flat_indices(rows: np.ndarray, cols: np.ndarray, size_px: int, shape) -> np.ndarray:
+    """Flat indices of the ``size_px`` x ``size_px`` window around each pixel (border replicated)."""
+    h, w = shape
+    radius = size_px // 2
+    dr, dc = _window_offsets(size_px)
+    base = rows.astype(np.intp) * w + cols
+    flat = base[:, None] + (dr * w + dc)[None, :]
+    near_border = (rows < radius) | (rows >= h - radius) | (cols < radius) | (cols >= w - radius)
+    if near_border.any():
+        rr = np.clip(rows[near_border, None] + dr[None, :], 0, h - 1)
+        cc = np.clip(cols[near_border, None] + dc[None, :], 0, w - 1)
+        flat[near_border] = rr * w + cc
+    return flat
+
+
 def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                      circular: bool = False) -> np.ndarray:
+                      smallest_px: int = 3) -> np.ndarray:
     """Median of the non-excluded pixels around each (row, col), float64.
 
-    Tries windows of 3, 5, 7 and 9 px and uses, per pixel, the smallest with enough
-    non-excluded pixels. Borders are replicated. ``circular``: values are hues in [0, 1),
-    already rotated so that the data do not straddle the wrap (the median is then linear).
-    Returns NaN where even the largest window holds no usable pixel.
+    Tries windows of 3 (or ``smallest_px``), 5, 7 and 9 px and uses, per pixel, the smallest
+    with enough non-excluded pixels. Borders are replicated. Returns NaN where even the
+    largest window holds no usable pixel. Hue must already be rotated so that the values do
+    not straddle the wrap (the median is then the linear one).
     """
-    h, w = x.shape
+    x_flat = np.ascontiguousarray(x).ravel()
+    excluded_flat = np.ascontiguousarray(excluded).ravel()
     out = np.full(rows.shape, np.nan)
     todo = np.arange(rows.size)
     for size, min_good in zip(_REPLACEMENT_WINDOWS_PX, _REPLACEMENT_MIN_GOOD, strict=True):
         if todo.size == 0:
             break
-        dr, dc = _window_offsets(size)
-        rr = np.clip(rows[todo, None] + dr[None, :], 0, h - 1)
-        cc = np.clip(cols[todo, None] + dc[None, :], 0, w - 1)
-        vals = x[rr, cc].astype(np.float64)
-        bad = excluded[rr, cc]
-        good_count = vals.shape[1] - bad.sum(axis=1)
+        if size < smallest_px:
+            continue
+        flat = _window_flat_indices(rows[todo], cols[todo], size, x.shape)
+        vals = x_flat[flat].astype(_FLOAT, copy=False)
+        bad = excluded_flat[flat]
+        good_count = size * size - np.count_nonzero(bad, axis=1)
         vals[bad] = np.inf
         vals.sort(axis=1)
         enough = good_count >= (min_good if size != _REPLACEMENT_WINDOWS_PX[-1] else 1)
@@ -242,7 +270,7 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
             n = good_count[idx]
             lo = np.take_along_axis(vals[idx], ((n - 1) // 2)[:, None], axis=1)[:, 0]
             hi = np.take_along_axis(vals[idx], (n // 2)[:, None], axis=1)[:, 0]
-            out[todo[idx]] = 0.5 * (lo + hi)
+            out[todo[idx]] = 0.5 * (lo.astype(np.float64) + hi)
         todo = todo[~enough]
     return out
 
@@ -257,17 +285,21 @@ class _NoiseModel:
     pulse_density: float
     bright_only: bool
     var_floor: float
+    min_contrast: float = 0.0
 
     def variance(self, m: np.ndarray) -> np.ndarray:
         return np.maximum(self.a * m + self.b, self.var_floor)
 
-    def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float) -> np.ndarray:
+    def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float,
+                 prior: float | None = None) -> np.ndarray:
         """Posterior pulse probability > threshold, vectorised (float32 inputs allowed).
 
-        r > t  <=>  d^2/s^2 > 2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi s^2).
+        r > t  <=>  d^2/s^2 > 2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi s^2),
+        with ``P`` the fitted pulse rate unless a ``prior`` is given.
         """
         s2 = self.variance(m)
-        const = (2.0 * math.log((1.0 - self.pulse_rate) / (self.pulse_rate * self.pulse_density))
+        rate = self.pulse_rate if prior is None else prior
+        const = (2.0 * math.log((1.0 - rate) / (rate * self.pulse_density))
                  + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
                  - math.log(2.0 * math.pi))
         limit = s2 * (const - np.log(s2))
@@ -276,6 +308,8 @@ class _NoiseModel:
             pulse &= d > 0
         else:
             pulse &= d != 0
+        if self.min_contrast > 0:
+            pulse &= np.abs(d) > self.min_contrast * np.abs(m)
         return pulse
 
 
@@ -367,33 +401,40 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
                                        m.ravel()[pick].astype(np.float64),
                                        photon_counting=photon_counting, bright_only=bright_only,
                                        value_range=value_range, iterations=params.em_iterations)
+            if photon_counting:
+                first_model.min_contrast = float(params.min_contrast)
         model = first_model
         mask = model.is_pulse(d, m, params.posterior_threshold)
-        del d, m
+        del d
         if valid is not None:
             mask &= valid
+        del m
         mask = _grow_patches(x, mask, model, params, valid, circular)
         if not mask.any():
             break
         rows, cols = np.nonzero(mask)
-        repl = _masked_median_at(x, mask, rows, cols, circular)
+        repl = _masked_median_at(x, mask, rows, cols)
         keep = np.isfinite(repl)
         x[rows[keep], cols[keep]] = repl[keep].astype(_FLOAT)
         mask_total |= mask
     return x, mask_total, first_model
 
 
-def _grow_patches(x: np.ndarray, mask: np.ndarray, model: _NoiseModel, params: ImpulseParams,
-                  valid: np.ndarray | None, circular: bool) -> np.ndarray:
+def _grow_patches(x: np.ndarray, mask: np.ndarray, model: _NoiseModel,
+                  params: ImpulseParams, valid: np.ndarray | None, circular: bool) -> np.ndarray:
     """Add neighbours of detected pulses that are pulses against their background.
 
     Each round tests the ring of pixels next to the mask against the median of the pixels
-    that are neither in the mask nor in the ring, so the still undetected core of a large
-    patch does not pull the background estimate up; a patch is peeled from its rim inward.
+    of a 7x7 (or larger) window that are neither in the mask nor in the ring, so the still
+    undetected core of a large patch does not pull the background up; a patch is peeled
+    from its rim inward. The window is large enough to surround the pixel on an edge (a
+    3x3 window minus the patch would hold only pixels on one side). Ring pixels get the prior pulse probability ``params.neighbour_prior``: pulses
+    come as patches and tracks, so their fainter rims are accepted at a lower significance.
     """
     import cv2
 
     kernel = np.ones((3, 3), np.uint8)
+    prior = max(params.neighbour_prior, model.pulse_rate)
     for _ in range(params.max_patch_px):
         if not mask.any():
             break
@@ -404,13 +445,13 @@ def _grow_patches(x: np.ndarray, mask: np.ndarray, model: _NoiseModel, params: I
         rows, cols = np.nonzero(ring)
         if rows.size == 0:
             break
-        med = _masked_median_at(x, grown, rows, cols, circular)
+        med = _masked_median_at(x, grown, rows, cols, smallest_px=7)
         d = x[rows, cols].astype(np.float64) - med
         if circular:
             d = (d + 0.5) % 1.0 - 0.5
         ok = np.isfinite(d)
         new = np.zeros(rows.shape, bool)
-        new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold)
+        new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold, prior=prior)
         if not new.any():
             break
         mask = mask.copy()
