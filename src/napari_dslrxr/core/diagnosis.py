@@ -61,6 +61,18 @@ class DiagnosisOptions:
         Canonical correlation above which two candidates are flagged as confusable.
     tries_per_round : int
         Candidates refitted per round before giving up.
+    max_nfev : int
+        Function-evaluation limit per least-squares fit.
+    binning : int or None
+        Force this block-averaging factor (default: the smallest that fits ``max_fit_size_px``).
+        Use it when the noise is spatially correlated (bin until lag-1 correlation is small).
+    fixed_offset_dn : float or None
+        Hold the camera offset at this value (from a dark frame: the acquisition that separates
+        a uniform glare floor from the black level, notes §4); default: fitted.
+    noise_model_binned : (float, float) or None
+        ``(K, c)`` with ``v(mu) = K mu + c`` (absolute DN) for the *binned* recording, e.g. from
+        repeated frames
+        (:func:`noise_model_from_repeats`); default: estimated from the recording itself.
     """
 
     accept_delta_bic: float = 10.0
@@ -72,6 +84,9 @@ class DiagnosisOptions:
     confusable_correlation: float = 0.9
     tries_per_round: int = 2
     max_nfev: int = 60
+    binning: int | None = None
+    noise_model_binned: tuple[float, float] | None = None
+    fixed_offset_dn: float | None = None
 
 
 @dataclass
@@ -157,11 +172,13 @@ class _Layout:
     lower: np.ndarray
     upper: np.ndarray
     steps: np.ndarray
+    free_base: tuple[str, ...] = BASE_FREE
 
     @classmethod
-    def build(cls, base: dict[str, float], terms: list[PhysicsTerm]) -> "_Layout":
+    def build(cls, base: dict[str, float], terms: list[PhysicsTerm],
+              free_base: tuple[str, ...] = BASE_FREE) -> "_Layout":
         names, lo, hi, st = [], [], [], []
-        for key in BASE_FREE:
+        for key in free_base:
             names.append(("base", key))
             value = abs(base[key])
             if key == "offset_dn":
@@ -174,7 +191,9 @@ class _Layout:
             for spec in term.params:
                 names.append((term.name, spec.name))
                 lo.append(spec.prior[0]), hi.append(spec.prior[1]), st.append(spec.step)
-        return cls(dict(base), list(terms), names, np.array(lo), np.array(hi), np.array(st))
+        layout = cls(dict(base), list(terms), names, np.array(lo), np.array(hi), np.array(st))
+        layout.free_base = tuple(free_base)
+        return layout
 
     def unpack(self, x: np.ndarray) -> tuple[dict, list[tuple[PhysicsTerm, dict]]]:
         base = dict(self.base_fixed)
@@ -333,8 +352,11 @@ def _quantile_edges(values: np.ndarray, n_bins: int) -> np.ndarray:
 
 
 def residual_profiles(z: np.ndarray, mask: np.ndarray, thickness_coarse: np.ndarray,
-                      expected_dn: np.ndarray, grid: ChainGrid) -> dict:
+                      expected_dn: np.ndarray, grid: ChainGrid, px_scale: int = 1) -> dict:
     """Mean normalised residual along the organising covariates of the library.
+
+    Positions (rows, columns, edge distance) are in recording pixels (fitted-grid pixels times
+    ``px_scale``, the binning).
 
     Returns a dict of profiles ``{"rows", "columns", "radius", "edge_distance_px", "thickness_mm",
     "intensity_dn"}`` each with bin centres, mean z, bin z-score (``Σz/√n``) and counts.
@@ -350,11 +372,12 @@ def residual_profiles(z: np.ndarray, mask: np.ndarray, thickness_coarse: np.ndar
     outside = ndimage.distance_transform_edt(~attenuating)
     signed = np.where(attenuating, -inside + 0.5, outside - 0.5)
     nbins = 32
+    rr, cc, signed = rr * px_scale, cc * px_scale, signed * px_scale
     return {
-        "rows": _binned_profile(rr[m], zm, np.linspace(0, h, min(nbins, h) + 1)),
-        "columns": _binned_profile(cc[m], zm, np.linspace(0, w, min(nbins, w) + 1)),
+        "rows": _binned_profile(rr[m], zm, np.linspace(0, h * px_scale, min(nbins, h) + 1)),
+        "columns": _binned_profile(cc[m], zm, np.linspace(0, w * px_scale, min(nbins, w) + 1)),
         "radius": _binned_profile(rho[m], zm, np.linspace(0, rho.max() + 1e-9, nbins + 1)),
-        "edge_distance_px": _binned_profile(signed[m], zm, np.arange(-30.5, 31.5, 2.0)),
+        "edge_distance_px": _binned_profile(signed[m], zm, np.arange(-30.5, 31.5, max(2.0, px_scale))),
         "thickness_mm": _binned_profile(thickness_coarse[m], zm,
                                         np.linspace(0, thickness_coarse.max() + 1e-9, 17)),
         "intensity_dn": _binned_profile(expected_dn[m], zm, _quantile_edges(expected_dn[m], 16)),
@@ -565,7 +588,7 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
     pulses = hp / np.sqrt(rough_var) > 8.0 * scale_est
     pulses = ndimage.binary_dilation(pulses, iterations=2)
 
-    binning = int(np.ceil(max(y_full.shape) / opts.max_fit_size_px))
+    binning = opts.binning or int(np.ceil(max(y_full.shape) / opts.max_fit_size_px))
     h, w = (y_full.shape[0] // binning) * binning, (y_full.shape[1] // binning) * binning
     s = grid.fine_factor
     y = block_mean(y_full[:h, :w], binning)
@@ -582,19 +605,33 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
     unit = model.expected({**base0, "offset_dn": 0.0, "gain_dn": 1.0})
     design = np.stack([np.ones(mask.sum()), unit[mask]], 1)
     (b0, g0), *_ = np.linalg.lstsq(design, y[mask], rcond=None)
-    if g0 > 0:
-        base0["offset_dn"], base0["gain_dn"] = float(b0), float(g0)
+    if opts.fixed_offset_dn is not None:
+        base0["offset_dn"] = float(opts.fixed_offset_dn)
+        g0 = float(np.sum(unit[mask] * (y[mask] - base0["offset_dn"])) / np.sum(unit[mask] ** 2))
+        base0["gain_dn"] = g0 if g0 > 0 else base0["gain_dn"]
+        free_base = tuple(k for k in BASE_FREE if k != "offset_dn")
+    else:
+        free_base = BASE_FREE
+        if g0 > 0:
+            base0["offset_dn"], base0["gain_dn"] = float(b0), float(g0)
 
-    layout = _Layout.build(base0, [])
+    layout = _Layout.build(base0, [], free_base)
     x = layout.pack(base0, {})
     # Rough noise for the first fit, then the model-based estimate, then refit (IRLS).
     mu = model.expected(*layout.unpack(x))
-    problem.k, problem.s2 = estimate_noise_model(y - mu, mu, base0["offset_dn"], mask)
+
+    def noise(mu_now, offset_now):
+        if opts.noise_model_binned is not None:
+            slope, intercept = opts.noise_model_binned  # v = slope * mu + intercept (absolute DN)
+            return float(slope), max(float(intercept + slope * offset_now), 1e-6)
+        return estimate_noise_model(y - mu_now, mu_now, offset_now, mask)
+
+    problem.k, problem.s2 = noise(mu, base0["offset_dn"])
     for _ in range(2):
         problem.set_weights(mu, layout.unpack(x)[0]["offset_dn"])
         x, chi2, jac = problem.fit(layout, x, max_nfev=opts.max_nfev)
         mu = model.expected(*layout.unpack(x))
-        problem.k, problem.s2 = estimate_noise_model(y - mu, mu, layout.unpack(x)[0]["offset_dn"], mask)
+        problem.k, problem.s2 = noise(mu, layout.unpack(x)[0]["offset_dn"])
     problem.set_weights(mu, layout.unpack(x)[0]["offset_dn"])
     resid = (y - mu) * problem.wsqrt
     # Mask positive outliers the full-resolution test missed (clusters of pulses after binning).
@@ -615,7 +652,7 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
     base_bic = chi2 + len(x) * log_n
     tile = max(8, opts.tile_px)
     regions = _flagged_regions(z_base, mask, tile, binning, scale=base_chi2_dof)
-    profiles_base = residual_profiles(z_base, mask, thickness_coarse, mu, cgrid)
+    profiles_base = residual_profiles(z_base, mask, thickness_coarse, mu, cgrid, binning)
 
     heldout = _checkerboard(y.shape, max(8, opts.heldout_block_px // binning if binning > 1
                                          else opts.heldout_block_px))
@@ -645,7 +682,7 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
                 lo, hi = spec.prior
                 if spec.probe != spec.null and abs(value) > 0.1 * abs(spec.probe) and lo <= value <= hi:
                     start[spec.name] = value
-            new_layout = _Layout.build(layout.base_fixed, terms_now + [term])
+            new_layout = _Layout.build(layout.base_fixed, terms_now + [term], free_base)
             base_cur, _ = layout.unpack(x)
             x0 = new_layout.pack(base_cur, {**term_values, term.name: start})
             x_ext, chi2_ext, jac_ext = problem.fit(new_layout, x0, max_nfev=opts.max_nfev)
@@ -728,7 +765,7 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
         base_params=base_fit, final_base_params=dict(layout.unpack(x)[0]),
         z_base=z_base.astype(np.float32), z_final=z_final.astype(np.float32), mask=mask,
         profiles_base=profiles_base,
-        profiles_final=residual_profiles(z_final, mask, thickness_coarse, mu, cgrid),
+        profiles_final=residual_profiles(z_final, mask, thickness_coarse, mu, cgrid, binning),
         rankings=rankings, binning=binning, n_pixels=n, smooth_delta_bic=float(smooth_dbic),
         message=message)
 
@@ -740,3 +777,159 @@ def diagnose_scene(scene: Scene, recording: np.ndarray, options: DiagnosisOption
         raise InputError(scene.path or "scene", f"recording shape {np.shape(recording)} does not match "
                                                 f"the thickness map {scene.shape}")
     return diagnose(recording, scene.thickness_mm, scene.grid(), scene.base_params(), options, progress)
+
+
+def clean_repeats(frames: np.ndarray, z_threshold: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of repeated frames with impulsive spots replaced by the temporal median.
+
+    Parameters
+    ----------
+    frames : ndarray, (N, H, W)
+        Repeated exposures (DN), N >= 3.
+    z_threshold : float
+        A pixel of a frame is a spot when it exceeds the temporal median by more than this many
+        robust (MAD) standard deviations of the frame-minus-median difference.
+
+    Returns
+    -------
+    mean : ndarray, float64, (H, W)
+    spot_fraction : ndarray, float64, (N,)
+        Fraction of pixels replaced per frame.
+    """
+    frames = np.asarray(frames, dtype=np.float64)
+    if frames.ndim != 3 or frames.shape[0] < 3:
+        raise InputError(None, f"need at least 3 repeated 2-D frames, got shape {frames.shape}")
+    median = np.median(frames, axis=0)
+    diff = frames - median
+    sigma = 1.4826 * np.median(np.abs(diff), axis=(1, 2), keepdims=True)
+    spots = diff > z_threshold * sigma
+    cleaned = np.where(spots, median, frames)
+    return cleaned.mean(axis=0), spots.mean(axis=(1, 2))
+
+
+def noise_model_from_repeats(frames: np.ndarray, binning: int, n_bins: int = 24) -> tuple[float, float]:
+    """``(K, c)``, ``var = K · level + c`` (DN², absolute level), of the mean of ``frames``
+    block-averaged ``binning``×, from the repeats themselves.
+
+    The difference of the means of the even and odd frames, halved, has the noise variance of
+    the mean of all frames — including its spatially correlated part, which a high-pass
+    estimate on one image misses (scintillator light spread makes the noise correlated). Each
+    half's global gain/offset difference (source output drift) and a very smooth drift map are
+    removed first; then a robust (MAD) variance per bin of block level and a straight line.
+    Spots must already be replaced (:func:`clean_repeats`).
+    """
+    from scipy import ndimage
+
+    frames = np.asarray(frames, dtype=np.float64)
+    n = frames.shape[0]
+    if frames.ndim != 3 or n < 4:
+        raise InputError(None, f"need at least 4 repeated 2-D frames for the noise model, got {frames.shape}")
+    mean = frames.mean(axis=0)
+    diff = 0.5 * (frames[0::2].mean(axis=0) - frames[1::2].mean(axis=0))
+    # equal weights: var(diff) = var(mean) exactly only for equal halves
+    diff *= np.sqrt((n // 2 + (n - n // 2)) ** 2 / (4 * (n // 2) * (n - n // 2))) if n % 2 else 1.0
+    h, w = mean.shape
+    hb, wb = (h // binning) * binning, (w // binning) * binning
+    level = block_mean(mean[:hb, :wb], binning)
+    d = block_mean(diff[:hb, :wb], binning)
+    design = np.stack([np.ones(level.size), level.ravel()], 1)
+    coef, *_ = np.linalg.lstsq(design, d.ravel(), rcond=None)
+    d = d - (design @ coef).reshape(d.shape)
+    d = d - ndimage.gaussian_filter(d, max(2.0, 32.0 / binning), mode="reflect")
+    edges = np.unique(np.quantile(level, np.linspace(0, 1, n_bins + 1)))
+    which = np.clip(np.searchsorted(edges, level.ravel(), side="right") - 1, 0, len(edges) - 2)
+    xs, vs = [], []
+    for b in range(len(edges) - 1):
+        sel = which == b
+        if sel.sum() >= 20:
+            dd = d.ravel()[sel]
+            xs.append(level.ravel()[sel].mean())
+            vs.append((1.4826 * np.median(np.abs(dd - np.median(dd)))) ** 2)
+    if len(xs) < 2:
+        raise InputError(None, "too few pixels to estimate the noise model from the repeats")
+    slope, intercept = np.polyfit(np.array(xs), np.array(vs), 1)
+    return float(slope), float(intercept)
+
+
+def edge_object_from_image(image: np.ndarray, supersample: int = 2, smooth_px: float = 1.0) -> np.ndarray:
+    """Ideal (unblurred) opaque-object map from a recording of a plate edge, sub-pixel.
+
+    The image is smoothed (Gaussian ``smooth_px``), upsampled ``supersample``× (bilinear) and
+    thresholded half-way between the open level (95th percentile) and the plate level (5th
+    percentile). For a symmetric PSF the 50 % contour of a blurred straight edge lies on the
+    edge itself, so the map is the plate as it would be imaged without blur (corners are
+    slightly rounded).
+
+    Returns
+    -------
+    ndarray, float64, (H*s, W*s)
+        1.0 where the plate is, 0.0 in the open field (a "thickness" in mm of a unit material
+        whose attenuation the base fit estimates).
+    """
+    from scipy import ndimage
+
+    img = ndimage.gaussian_filter(np.asarray(image, dtype=np.float64), smooth_px)
+    lo, hi = np.percentile(img, 5), np.percentile(img, 95)
+    fine = ndimage.zoom(img, supersample, order=1, mode="nearest", grid_mode=True)
+    return (fine < 0.5 * (lo + hi)).astype(np.float64)
+
+
+def diagnose_edge_repeats(frames: np.ndarray, *, dark_frame: np.ndarray | None = None,
+                          flat_frame: np.ndarray | None = None, pixel_pitch_mm: float = 0.1,
+                          binning: int = 2, supersample: int = 2,
+                          options: DiagnosisOptions | None = None,
+                          progress: Callable[[str], None] | None = None) -> DiagnosisResult:
+    """Diagnose repeated recordings of an opaque plate edge (no thickness map available).
+
+    Steps: flat-field correction with the smoothed open-beam frame (if given; median 5×5 then
+    Gaussian sigma 3 px, normalised to median 1); spots replaced by the temporal median and the
+    frames averaged (:func:`clean_repeats`); the ideal edge map derived from the mean image
+    (:func:`edge_object_from_image`, a unit-thickness "material" whose attenuation is fitted);
+    the noise model of the binned mean from the even/odd half difference
+    (:func:`noise_model_from_repeats`); the offset held at the dark frame's median (it separates
+    a uniform glare floor from the black level). Geometry: the object lies against the screen
+    (``M - 1 ≈ 0``), so only the detector blur is fitted.
+
+    Parameters
+    ----------
+    frames : ndarray, (N, H, W)
+        Repeated exposures (DN), N >= 4.
+    dark_frame, flat_frame : ndarray, (H, W), optional
+    pixel_pitch_mm : float
+        Pixel pitch on the screen (ranges are reported in mm with it).
+    binning : int
+        Block-averaging factor of the fit (the noise is spatially correlated).
+    """
+    from scipy import ndimage
+
+    frames = np.asarray(frames, dtype=np.float64)
+    if frames.ndim != 3 or frames.shape[0] < 4:
+        raise InputError(None, f"need at least 4 repeated 2-D frames, got shape {frames.shape}")
+    dark = float(np.median(dark_frame)) if dark_frame is not None else float(np.percentile(frames, 0.1))
+    if flat_frame is not None:
+        flat = ndimage.gaussian_filter(ndimage.median_filter(np.asarray(flat_frame, float), 5), 3) - dark
+        if np.any(flat <= 0):
+            raise InputError(None, "flat frame is not brighter than the dark level everywhere")
+        flat /= np.median(flat)
+        frames = (frames - dark) / flat + dark
+    median = np.median(frames, axis=0)
+    diff = frames - median
+    sigma = 1.4826 * np.median(np.abs(diff), axis=(1, 2), keepdims=True)
+    cleaned = np.where(diff > 6.0 * sigma, median, frames)
+    recording = cleaned.mean(axis=0)
+    h, w = recording.shape
+    h, w = (h // binning) * binning, (w // binning) * binning
+    recording, cleaned = recording[:h, :w], cleaned[:, :h, :w]
+    obj = edge_object_from_image(recording, supersample)
+    slope, intercept = noise_model_from_repeats(cleaned, binning)
+    grid = ChainGrid(recording.shape, supersample, pixel_pitch_mm, 0.0, 1.0e4)
+    open_level = float(np.percentile(recording, 95))
+    plate_level = float(np.percentile(recording, 5))
+    start = {"offset_dn": dark, "gain_dn": open_level - dark,
+             "mu_per_mm": float(np.log((open_level - dark) / max(plate_level - dark, 1.0))),
+             "detector_sigma_mm": 2.0 * pixel_pitch_mm, "focal_spot_sigma_mm": 0.0}
+    opts = options or DiagnosisOptions()
+    from dataclasses import replace
+
+    opts = replace(opts, binning=binning, fixed_offset_dn=dark, noise_model_binned=(slope, intercept))
+    return diagnose(recording, obj, grid, start, opts, progress)

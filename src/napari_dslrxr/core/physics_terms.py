@@ -227,8 +227,9 @@ def _px(grid: ChainGrid, length_mm: float) -> float:
 
 
 def _apply_beam_hardening(state: ChainState, p: dict) -> None:
-    # Mono attenuation over-predicts thick parts: p_meas = p - beta p^2 (notes §3.8).
-    state.path = state.path - p["beta"] * state.path**2
+    # Mono attenuation over-predicts thick parts: p_meas = p / (1 + beta p) = p - beta p^2 + ...
+    # (notes §3.8 to first order; this form stays monotone for opaque objects).
+    state.path = state.path / (1.0 + p["beta"] * state.path)
 
 
 def _apply_heel(state: ChainState, p: dict) -> None:
@@ -328,10 +329,10 @@ P = ParamSpec
 LIBRARY: tuple[PhysicsTerm, ...] = (
     PhysicsTerm(
         "beam_hardening", "path",
-        (P("beta", 0.0, (-0.05, 0.3), 0.01, 1e-3),),
+        (P("beta", 0.0, (0.0, 0.5), 0.01, 1e-3),),
         "beta", _apply_beam_hardening,
         physics="Polychromatic beam: the mono model over-predicts attenuation of thick parts; "
-                "measured line integral p - beta p^2 (notes §3.8).",
+                "measured line integral p / (1 + beta p) ≈ p - beta p^2 (notes §3.8).",
         covariate="line integral p", separating="two-material wedge; kV series"),
     PhysicsTerm(
         "heel_effect", "fluence",
@@ -368,7 +369,7 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
     PhysicsTerm(
         "veiling_glare", "psf",
         (P("eta", 0.0, (0.0, 0.5), 0.02, 2e-3),
-         P("range_mm", 1.0, (0.05, 20.0), 1.0, 0.05, grid=(0.2, 0.5, 1.0, 2.0, 4.0), unit="mm")),
+         P("range_mm", 1.0, (0.05, 20.0), 1.0, 0.05, grid=(0.2, 0.5, 1.0, 2.0, 4.0, 8.0), unit="mm")),
         "eta", _apply_veiling_glare,
         physics="Screen veiling glare: long exponential PSF tail (1 - eta) G + eta exp(-r/w)/(2 pi w^2) "
                 "from grain scatter, backing reflection and light piping (notes §3.4).",
