@@ -448,7 +448,7 @@ def estimate_regularisation(image: np.ndarray, kernel: np.ndarray, method: str =
     Parameters
     ----------
     image : ndarray (H, W) or (H, W, 3)
-        Blurred linear image, any real dtype (colour: the channel mean is used).
+        Blurred linear image, any real dtype (colour: fitted per channel, geometric mean).
     kernel : ndarray
         Blur kernel (odd sides, non-negative).
     method : str
@@ -462,17 +462,29 @@ def estimate_regularisation(image: np.ndarray, kernel: np.ndarray, method: str =
     check_method(method)
     arr = _validate_image(image)
     k = validate_kernel(kernel)
-    grey = _luminance(arr).astype(np.float32, copy=False)
-    offset, scale = robust_range(grey)
-    normalised = (grey - np.float32(offset)) * np.float32(1.0 / scale)
-    c, s2, k2, d2 = _whittle_fit(normalised, k)
-    c = max(c, 1e-30)
-    if method == "wiener":
-        lam = _AUTO_KAPPA[method] * _wiener_mse_optimal_nsr(c, s2, k2, d2)
-    else:
-        lam = _AUTO_KAPPA[method] * s2 / c
-    sigma_n = _noise_floor(estimate_noise_sigma(normalised))
-    return float(np.clip(lam / sigma_n ** 2, REG_MIN, REG_MAX))
+    _, scale = robust_range(_luminance(arr).astype(np.float32, copy=False))
+    log_lams = []
+    for ch in _channels(arr):  # colour: per channel (the noise is per channel), geometric mean
+        normalised = ch.astype(np.float32) * np.float32(1.0 / scale)
+        c, s2, k2, d2 = _whittle_fit(normalised, k)
+        c = max(c, 1e-30)
+        if method == "wiener":
+            lam = _AUTO_KAPPA[method] * _wiener_mse_optimal_nsr(c, s2, k2, d2)
+        else:
+            lam = _AUTO_KAPPA[method] * s2 / c
+        log_lams.append(math.log(max(lam, 1e-30)))
+    sigma_n = _channel_noise(arr, scale)
+    return float(np.clip(math.exp(float(np.mean(log_lams))) / sigma_n ** 2, REG_MIN, REG_MAX))
+
+
+def _channels(arr: np.ndarray) -> list[np.ndarray]:
+    return [arr] if arr.ndim == 2 else [arr[..., i] for i in range(arr.shape[-1])]
+
+
+def _channel_noise(arr: np.ndarray, scale: float) -> float:
+    """Relative noise sigma_n: root-mean-square over channels of their noise, over ``scale``."""
+    variances = [estimate_noise_sigma(ch) ** 2 for ch in _channels(arr)]
+    return _noise_floor(math.sqrt(float(np.mean(variances))) / scale)
 
 
 def _noise_floor(sigma_n: float) -> float:
@@ -615,7 +627,7 @@ def deconvolve_steps(image: np.ndarray, kernel: np.ndarray, *, method: str = "ad
     reg = check_reg(reg)
     arr = _validate_image(image)
     k = validate_kernel(kernel)
-    channels = [arr] if arr.ndim == 2 else [arr[..., i] for i in range(arr.shape[-1])]
+    channels = _channels(arr)
     total = 1 + len(channels) * _STEPS_PER_CHANNEL[method]
     done = 0
 
@@ -625,7 +637,7 @@ def deconvolve_steps(image: np.ndarray, kernel: np.ndarray, *, method: str = "ad
     _, scale = robust_range(grey)
     if reg == "auto":
         reg = estimate_regularisation(arr, k, method)
-    sigma_n = _noise_floor(estimate_noise_sigma(grey) / scale)
+    sigma_n = _channel_noise(arr, scale)
     lam = float(reg) * sigma_n ** 2
     otf_conj = kernel_otf(k, shape)
     k2 = np.square(otf_conj.real)

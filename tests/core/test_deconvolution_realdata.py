@@ -1,0 +1,89 @@
+"""Deconvolution of a real radiograph (NEMA WG04 lower leg, cr_dicom) blurred by a known kernel.
+
+The key comparison of benchmarks/eval_deconvolution.py on a small crop: our default method
+with its automatic regularisation (no truth) against scikit-image's Wiener and Richardson-Lucy
+at their best parameters chosen with the truth (given the same replicate padding, so the
+comparison is about the prior and not about border handling).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+from scipy.signal import fftconvolve
+from skimage import restoration
+
+from napari_dslrxr.core import deconvolution as dc
+from napari_dslrxr.core.io import read_image
+
+pytestmark = pytest.mark.realdata
+
+CROP = (1200, 700, 256)  # tibia and fibula cortex: strong bone edges
+
+
+def psnr(truth, x):
+    return float(10 * np.log10(1.0 / np.mean((truth - x) ** 2)))
+
+
+@pytest.fixture(scope="module")
+def leg_case(shared_data):
+    psf = pytest.importorskip("napari_dslrxr.core.psf")
+    full = read_image(shared_data / "cr_dicom" / "RG3_UNCR.dcm").data.astype(np.float64)
+    full = (full - full.min()) / (full.max() - full.min())
+    kernel = psf.PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.6, source_fwhm_y_mm=0.6,
+                          detector_fwhm_core_mm=0.25, detector_fwhm_tail_mm=1.0,
+                          detector_weight_core=0.9).kernel(900.0, 1000.0)
+    r0, c0, n = CROP
+    h = kernel.shape[0] // 2
+    window = full[r0 - 2 * h:r0 + n + 2 * h, c0 - 2 * h:c0 + n + 2 * h]
+    blurred = fftconvolve(window, kernel.astype(np.float64), mode="same")[2 * h:-2 * h, 2 * h:-2 * h]
+    truth = full[r0:r0 + n, c0:c0 + n]
+    rng = np.random.default_rng(20261122)
+    noisy = (rng.poisson(np.clip(blurred, 0, None) * 5000.0) / 5000.0).astype(np.float32)
+    return truth, kernel, noisy
+
+
+def best_skimage_psnr(truth, noisy, kernel, pad_px):
+    """Best PSNR of skimage Wiener (balance grid) and Richardson-Lucy (iteration grid), with truth.
+
+    ``pad_px = 0``: called as is (its own circular / zero borders); otherwise the input is
+    replicate-padded by ``pad_px`` and the result cropped back (our border handling).
+    """
+    y = noisy.astype(np.float64)
+    if pad_px:
+        y = np.pad(y, pad_px, mode="edge")
+    crop = (slice(pad_px, -pad_px), slice(pad_px, -pad_px)) if pad_px else (slice(None), slice(None))
+    wiener_best = max(psnr(truth, restoration.wiener(y, kernel, b, clip=False)[crop])
+                      for b in 10.0 ** np.arange(-3, 1.01, 0.25))
+    rl_best = max(psnr(truth, restoration.richardson_lucy(y, kernel, num_iter=n, clip=False)[crop])
+                  for n in (5, 10, 20, 40))
+    return max(wiener_best, rl_best)
+
+
+def test_adaptive_auto_against_best_skimage_on_a_real_radiograph(leg_case):
+    truth, kernel, noisy = leg_case
+    ours = psnr(truth, dc.deconvolve(noisy, kernel))  # adaptive prior, automatic reg: no truth
+    as_called = best_skimage_psnr(truth, noisy, kernel, 0)
+    padded = best_skimage_psnr(truth, noisy, kernel, kernel.shape[0])
+    # The issue's comparison: skimage as called, at its best parameter chosen with the truth.
+    assert ours >= as_called + 0.5, (ours, as_called)
+    # Given our border handling too, skimage tuned with the truth is matched, not beaten by 0.5 dB
+    # (see the report): ours without the truth stays within 0.1 dB or better.
+    assert ours >= padded - 0.1, (ours, padded)
+    assert ours > psnr(truth, noisy) + 2.0
+
+
+def test_no_ringing_halo_at_bone_edges(leg_case):
+    truth, kernel, noisy = leg_case
+    ours = dc.deconvolve(noisy, kernel)
+    grad = np.hypot(ndimage.sobel(truth, 0), ndimage.sobel(truth, 1)) / 8.0
+    band = ndimage.binary_dilation(grad > 0.25 * np.percentile(grad, 99.9), iterations=10)
+    band[:16], band[-16:], band[:, :16], band[:, -16:] = False, False, False, False
+    over = np.percentile((ours - ndimage.maximum_filter(truth, size=7))[band], 99.9)
+    under = np.percentile((ndimage.minimum_filter(truth, size=7) - ours)[band], 99.9)
+    # Overshoot beyond the local truth range stays within the noise (about 4 sigma of the
+    # residual noise), and far below the edge height (a ringing halo would be a fraction of it).
+    edge_height = np.percentile(truth, 99) - np.percentile(truth, 1)
+    sigma = dc.estimate_noise_sigma(noisy)
+    assert over < max(4 * sigma, 0.05 * edge_height) and under < max(4 * sigma, 0.05 * edge_height), (over, under, sigma)
