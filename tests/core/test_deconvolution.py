@@ -254,3 +254,14 @@ def test_bad_parameters_and_images_raise_one_line_errors(scene):
     assert dc.DeconvolutionParams().validate().method == "adaptive"
     with pytest.raises(ParameterError):
         dc.DeconvolutionParams(method="x").validate()
+
+
+def test_colour_auto_regularises_each_noisy_channel(rng):
+    truth = phantom(128)
+    kernel = gaussian_kernel(2.0, 7)
+    rgb = np.stack([blur_and_noise(truth * g, kernel, 2000.0, rng) for g in (1.0, 0.7, 0.5)], axis=-1)
+    out = dc.deconvolve(rgb, kernel)  # independent noise per channel: the luminance would hide it
+    for i, g in enumerate((1.0, 0.7, 0.5)):
+        ref = truth * g
+        gain = psnr(ref, out[..., i]) - psnr(ref, rgb[..., i])
+        assert gain > 1.0, f"channel {i}: gain {gain:.2f} dB"
