@@ -53,3 +53,14 @@ def test_missing_and_malformed_files(tmp_path):
     partial.write_text("[contrast]\nlevels = 5\n")
     assert load_params(partial).contrast.levels == 5
     assert load_params(partial).dynamic_range == PipelineParams().dynamic_range
+
+
+@pytest.mark.parametrize("data,message", [
+    ({"deblur": {"reg": float("inf")}}, "deblur.reg"),
+    ({"deblur": {"reg": 1e9}}, "deblur.reg"),
+    ({"region": {"polygon_xy": [[float("nan"), 0], [1, 1], [2, 2], [3, 3]]}}, "region.polygon_xy"),
+    ({"flatfield": {"flat_smoothing_px": float("inf")}}, "flatfield.flat_smoothing_px"),
+])
+def test_non_finite_and_huge_values_refused(data, message):
+    with pytest.raises(ParameterError, match=message):
+        params_from_dict(data)

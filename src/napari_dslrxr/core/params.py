@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import os
 import tomllib
 import typing
@@ -151,8 +152,8 @@ def _check_value(section: str, f: dataclasses.Field, value, default):
             if value != "auto":
                 raise ParameterError(f"{name}: expected a number > 0 or \"auto\", got {value!r}")
             return value
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise ParameterError(f"{name}: expected a number > 0 or \"auto\", got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= meta.get("max", 1e6):
+            raise ParameterError(f"{name}: expected a number in (0, {meta.get('max', 1e6):g}] or \"auto\", got {value!r}")
         return float(value)
     if isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
@@ -180,7 +181,8 @@ def _check_value(section: str, f: dataclasses.Field, value, default):
             raise ParameterError(f"{name}: expected a list, got {value!r}")
         if f.name == "polygon_xy" and value:
             ok = len(value) == 4 and all(isinstance(p, list) and len(p) == 2 and
-                                         all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)
+                                         all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                                             and math.isfinite(c) for c in p)
                                          for p in value)
             if not ok:
                 raise ParameterError(f"{name}: expected [] or 4 [x, y] points in pixels, got {value!r}")
