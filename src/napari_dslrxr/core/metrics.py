@@ -1,0 +1,180 @@
+"""Image-quality metrics of the pipeline: percentage error (PE) and global contrast factor (GCF).
+
+* PE = 100 * ||x - x_hat||_2 / ||x||_2 over the pixels of a region, with ``x`` the reference
+  (noise-free or original) and ``x_hat`` the processed image, both in the same linear units.
+  On a pulse-free region a perfect switching filter changes nothing, so PE there measures
+  over-filtering.
+* GCF: Matkovic, Neumann, Neumann, Psik & Purgathofer, "Global Contrast Factor - a New
+  Approach to Image Contrast", Computational Aesthetics 2005, pp. 159-167. Computed on the
+  display-referred grey image at nine resolutions (notes: ``shared/notes/stages.md`` 7.1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError, ParameterError
+
+__all__ = ["percentage_error", "global_contrast_factor", "GCF_SUPERPIXELS_PX", "gcf_weights"]
+
+#: Superpixel sizes (px) of the nine GCF resolutions (the paper's list for 1024x768 images).
+GCF_SUPERPIXELS_PX = (1, 2, 4, 8, 16, 25, 50, 100, 200)
+#: Display gamma of the GCF's linearisation.
+GCF_GAMMA = 2.2
+#: Rec. 709 luma weights used to turn display RGB into grey for the GCF.
+REC709_LUMA = (0.2126, 0.7152, 0.0722)
+
+
+def percentage_error(reference: np.ndarray, estimate: np.ndarray, *,
+                     roi: tuple[int, int, int, int] | None = None,
+                     mask: np.ndarray | None = None) -> float:
+    """Percentage error ``100 * ||reference - estimate|| / ||reference||`` (L2, in %).
+
+    Parameters
+    ----------
+    reference, estimate : ndarray
+        Same shape, ``(H, W)`` or ``(H, W, C)``; any real dtype (computed in float64), same
+        linear units.
+    roi : tuple of int, optional
+        ``(r0, c0, r1, c1)`` in pixels, end exclusive; default the whole image.
+    mask : ndarray of bool, optional
+        ``(H, W)``: only pixels where it is True count (combined with ``roi``).
+
+    Returns
+    -------
+    float
+        PE in percent.
+
+    Raises
+    ------
+    InputError
+        Shapes differ, values are not finite, or the region is empty or all zero in the
+        reference.
+    ParameterError
+        The ROI is outside the image or empty.
+    """
+    x = np.asarray(reference)
+    y = np.asarray(estimate)
+    if x.shape != y.shape:
+        raise InputError("estimate", f"shape {y.shape} differs from the reference's {x.shape}")
+    if x.ndim not in (2, 3) or x.size == 0:
+        raise InputError("reference", f"expected an (H, W) or (H, W, C) image, got shape {x.shape}")
+    for name, arr in (("reference", x), ("estimate", y)):
+        if arr.dtype.kind not in "uifb":
+            raise InputError(name, f"unsupported dtype {arr.dtype}")
+    select = np.ones(x.shape[:2], bool)
+    if roi is not None:
+        r0, c0, r1, c1 = (int(v) for v in roi)
+        h, w = x.shape[:2]
+        if not (0 <= r0 < r1 <= h and 0 <= c0 < c1 <= w):
+            raise ParameterError(f"roi: (r0, c0, r1, c1) = {tuple(roi)} is empty or outside the {h}x{w} image")
+        inside = np.zeros_like(select)
+        inside[r0:r1, c0:c1] = True
+        select &= inside
+    if mask is not None:
+        m = np.asarray(mask)
+        if m.shape != x.shape[:2]:
+            raise InputError("mask", f"shape {m.shape} differs from the image's {x.shape[:2]}")
+        select &= m.astype(bool)
+    if not select.any():
+        raise InputError("region", "no pixel selected by the ROI and mask")
+    xs = x[select].astype(np.float64)
+    ys = y[select].astype(np.float64)
+    if not (np.isfinite(xs).all() and np.isfinite(ys).all()):
+        raise InputError("image", "NaN or infinite values in the region")
+    norm = float(np.linalg.norm(xs))
+    if norm == 0.0:
+        raise InputError("reference", "is zero everywhere in the region; PE is undefined")
+    return 100.0 * float(np.linalg.norm(xs - ys)) / norm
+
+
+def gcf_weights() -> np.ndarray:
+    """The nine GCF weights ``w_i = (-0.406385 i/9 + 0.334573) i/9 + 0.0877526``, i = 1..9."""
+    t = np.arange(1, 10) / 9.0
+    return (-0.406385 * t + 0.334573) * t + 0.0877526
+
+
+def _display_grey(image: np.ndarray) -> np.ndarray:
+    """Display grey level k in [0, 255], float64, from uint8/uint16/float, grey or RGB."""
+    arr = np.asarray(image)
+    if arr.ndim == 3 and arr.shape[-1] in (3, 4):
+        arr = arr[..., :3]
+    elif arr.ndim != 2:
+        raise InputError("image", f"expected (H, W) or (H, W, 3), got shape {arr.shape}")
+    if arr.size == 0:
+        raise InputError("image", "empty image")
+    if arr.dtype == np.uint8:
+        k = arr.astype(np.float64)
+    elif arr.dtype == np.uint16:
+        k = arr.astype(np.float64) * (255.0 / 65535.0)
+    elif arr.dtype.kind == "f":
+        if not np.isfinite(arr).all():
+            raise InputError("image", "NaN or infinite values")
+        if arr.min() < 0.0 or arr.max() > 1.0:
+            raise InputError("image", f"float display image must lie in [0, 1], got [{arr.min():.4g}, {arr.max():.4g}]")
+        k = arr.astype(np.float64) * 255.0
+    else:
+        raise InputError("image", f"unsupported dtype {arr.dtype} (use uint8, uint16 or float in [0, 1])")
+    if k.ndim == 3:
+        k = k @ np.asarray(REC709_LUMA)
+    return k
+
+
+def _mean_local_contrast(perceptual: np.ndarray) -> float:
+    """Mean over pixels of the mean |L(p) - L(q)| over the existing 4-neighbours q of p."""
+    h, w = perceptual.shape
+    total = np.zeros((h, w))
+    count = np.zeros((h, w))
+    if w > 1:
+        dh = np.abs(np.diff(perceptual, axis=1))
+        total[:, :-1] += dh
+        total[:, 1:] += dh
+        count[:, :-1] += 1
+        count[:, 1:] += 1
+    if h > 1:
+        dv = np.abs(np.diff(perceptual, axis=0))
+        total[:-1, :] += dv
+        total[1:, :] += dv
+        count[:-1, :] += 1
+        count[1:, :] += 1
+    local = np.divide(total, count, out=np.zeros_like(total), where=count > 0)
+    return float(local.mean())
+
+
+def global_contrast_factor(image: np.ndarray) -> float:
+    """Global contrast factor (Matkovic et al. 2005) of a display image.
+
+    Steps: display grey ``k`` in [0, 255] -> linear ``l = (k/255)^2.2`` -> at each of the
+    nine resolutions (superpixels of 1, 2, 4, 8, 16, 25, 50, 100, 200 px; the image is
+    averaged in linear ``l`` with area interpolation to round(W/s) x round(H/s), at least
+    1x1) perceptual luminance ``L = 100 sqrt(l)`` -> local contrast of each pixel = mean
+    absolute difference of ``L`` to its existing 4-neighbours -> ``C_i`` = mean local
+    contrast -> ``GCF = sum_i w_i C_i``.
+
+    Parameters
+    ----------
+    image : ndarray
+        Display-referred (gamma-encoded, as shown on screen) grey ``(H, W)`` or RGB
+        ``(H, W, 3)``. uint8 is used as 0-255 directly; uint16 is scaled by 255/65535;
+        float must lie in [0, 1] and is scaled by 255. RGB is turned into grey by Rec. 709
+        luma on the display values, ``k = 0.2126 R + 0.7152 G + 0.0722 B``.
+
+    Returns
+    -------
+    float
+        GCF (dimensionless; about 1-10 for natural images, 0 for a constant image).
+    """
+    import cv2
+
+    k = _display_grey(image)
+    linear = (k / 255.0) ** GCF_GAMMA
+    h, w = linear.shape
+    contrasts = []
+    for size in GCF_SUPERPIXELS_PX:
+        if size == 1:
+            level = linear
+        else:
+            new_w, new_h = max(1, round(w / size)), max(1, round(h / size))
+            level = cv2.resize(linear, (new_w, new_h), interpolation=cv2.INTER_AREA)
+        contrasts.append(_mean_local_contrast(100.0 * np.sqrt(np.maximum(level, 0.0))))
+    return float(np.dot(gcf_weights(), contrasts))
