@@ -53,3 +53,19 @@ def test_edge_samples_have_the_geometry_and_the_blur_they_claim():
     (near, _, _), (far, _, _) = layers
     rise = [np.abs(np.diff(img[40:90, 40:90].mean(axis=0))).max() for img in (near, far)]
     assert rise[0] < 0.8 * rise[1]
+
+
+def test_scene_sample_recording_is_the_scene_plus_the_hidden_effect():
+    from napari_dslrxr.core.simulator import parse_scene, simulate_recording
+
+    (thickness, t_kw, _), (recording, r_kw, _) = samples.make_sample_scene()
+    meta = r_kw["metadata"]
+    assert meta["thickness_layer"] == t_kw["name"] and recording.shape == thickness.shape == samples.SCENE_SHAPE
+    scene = parse_scene(meta["scene_table"], thickness=thickness)
+    assert scene.effects == {}  # the scene the user believes in has no glare ...
+    again, truth = simulate_recording(scene, effects=meta["hidden_effects"], seed=samples.SCENE_SEED)
+    np.testing.assert_array_equal(recording, again)  # ... the recording has it
+    plain, plain_truth = simulate_recording(scene, seed=samples.SCENE_SEED)
+    # Veiling glare adds light under the opaque block: expected level there rises.
+    block = thickness > 20
+    assert (truth["expected"][block] - plain_truth["expected"][block]).mean() > 5.0

@@ -104,3 +104,45 @@ def make_sample_edges() -> list[tuple]:
                 "pixel_pitch_mm": EDGE_TRUTH["pixel_pitch_mm"], "psf_truth": dict(EDGE_TRUTH)}
         layers.append((image, {"name": f"edge SOD {sod:.0f} mm", "colormap": "gray", "metadata": meta}, "image"))
     return layers
+
+
+# --------------------------------------------------------------------------- simulator scene
+
+#: The scene the user believes in (what the diagnosis starts from): the analytic phantom in
+#: aluminium at 60 kVp, 0.1 mm pixels. The recording adds an effect the scene leaves out.
+SCENE_TABLE = {"geometry": {"source_to_detector_mm": 1200.0, "source_to_object_mm": 1000.0, "pixel_pitch_mm": 0.1},
+               "object": {"material": "aluminium"}, "source": {"kvp": 60},
+               "noise": {"poisson_gain_dn": 1.2, "read_noise_dn": 6.3}}
+SCENE_SHAPE = (128, 128)
+SCENE_HIDDEN_EFFECTS = {"veiling_glare": {"eta": 0.03, "range_mm": 1.5}}
+SCENE_SEED = 0
+
+
+@lru_cache(maxsize=1)
+def _scene_recording() -> tuple:
+    from .core.simulator import parse_scene, phantom_thickness_mm, simulate_recording
+
+    thickness = phantom_thickness_mm(SCENE_SHAPE)
+    scene = parse_scene(SCENE_TABLE, thickness=thickness)
+    recording, _ = simulate_recording(scene, effects=SCENE_HIDDEN_EFFECTS, seed=SCENE_SEED)
+    return thickness, recording
+
+
+def make_sample_scene() -> list[tuple]:
+    """A simulator scene: the thickness map (mm) and a simulated recording (DN).
+
+    The recording was simulated with veiling glare (eta 0.03, range 1.5 mm) that the scene
+    itself does not contain: the mismatch diagnosis should find and name it. The recording's
+    metadata hold the scene table and the name of its thickness layer.
+    """
+    thickness, recording = _scene_recording()
+    pitch = SCENE_TABLE["geometry"]["pixel_pitch_mm"]
+    thickness_name = "scene thickness (mm)"
+    return [
+        (thickness, {"name": thickness_name, "colormap": "viridis", "scale": (pitch, pitch),
+                     "metadata": {"format": "sample", "sample": "scene thickness"}}, "image"),
+        (recording, {"name": "simulated recording", "colormap": "gray", "scale": (pitch, pitch),
+                     "metadata": {"format": "sample", "sample": "scene recording", "scene_table": SCENE_TABLE,
+                                  "thickness_layer": thickness_name,
+                                  "hidden_effects": SCENE_HIDDEN_EFFECTS}}, "image"),
+    ]

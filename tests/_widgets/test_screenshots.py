@@ -138,6 +138,25 @@ def test_screenshot_psf_edges(make_napari_viewer, wait_for_worker):
     snap(viewer, "psf_edges")
 
 
+def test_screenshot_diagnosis(make_napari_viewer, wait_for_worker):
+    from napari_dslrxr._widgets.diagnosis import DiagnosisWidget
+
+    viewer = _viewer(make_napari_viewer)
+    thickness, recording = _add(viewer, samples.make_sample_scene())
+    widget = DiagnosisWidget(viewer)
+    viewer.window.add_dock_widget(widget, name="Diagnosis", area="right")
+    widget._recording.value = recording
+    widget._max_terms.value = 2
+    wait_for_worker(widget.run(), timeout_ms=120_000)
+    thickness.visible = False
+    viewer.layers["residual z 4x4 (base model)"].visible = True
+    after = viewer.layers["residual z 4x4 (final model)"]
+    after.translate = (after.translate[0], after.translate[1] + 14.0)  # after, beside before (mm)
+    viewer.reset_view()
+    viewer_camera(viewer).zoom *= 1.5
+    snap(viewer, "diagnosis")
+
+
 def test_screenshot_all_widgets_docked(make_napari_viewer, monkeypatch):
     """``dslrxr view`` layout: the sample radiograph and every widget tabbed on the right."""
     import napari
