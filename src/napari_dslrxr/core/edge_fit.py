@@ -22,9 +22,12 @@ with ``k = 2 ln(2)^(1/p)``, ``G`` the normalised 2-D Fourier transform of ``exp(
 detector and onto the edge normal, and the two sincs the square pixel aperture projected onto
 the normal (exact area integration). The ESF itself is evaluated on a fine 1-D grid (default
 1/16 px) by one inverse real FFT, ``ESF(t) = 1/2 + t/L + (1/h) irfft(OTF / (2 pi i f))``, and
-linearly interpolated at each pixel's ``d``. The grid period ``L`` is set from the largest tail
-width allowed, so the **tail is modelled analytically over its whole extent** and is never cut
-by the region of interest; the ROI only decides which pixels are compared.
+linearly interpolated at each pixel's ``d``. The mixture is split, ``ESF = w E_core + (1 - w)
+E_tail``: the compact core part lives on the fine grid with a short period, the smooth tail part
+(tail FWHM >= 4 px) on a 1/2 px grid whose period covers 8 FWHMs of the widest tail allowed
+(default 4 x the largest ROI side). So the **tail is modelled analytically over its whole
+extent** and is never cut by the region of interest; the ROI only decides which pixels are
+compared.
 
 All edges are fitted jointly by ``scipy.optimize.minimize(method="L-BFGS-B")`` on the mean squared
 residual with an **exact gradient**: the derivative of every OTF factor is analytic, the
@@ -36,7 +39,8 @@ against finite differences).
 
 Parameters: log FWHMs of the source (``F_x``, ``F_y``, source plane) and detector components
 (core, tail), the core weight ``w`` in ``[0.5, 1]``, and per edge ``c_j``, ``phi_j``, ``a_j``,
-``b_j``. With a single source-to-object ratio the source cannot be told from the detector blur:
+``b_j`` (the levels enter linearly and are solved in closed form inside every evaluation:
+variable projection). With a single source-to-object ratio the source cannot be told from the detector blur:
 the source is then fixed to zero and the detector PSF carries the combined blur. With edges of
 one orientation only, ``F_y`` is tied to ``F_x``.
 
@@ -44,9 +48,14 @@ Robustness: bright impulses (gamma-ray hits on the camera) are masked before the
 more than 8 robust sigmas above a 5x5 median, dilated by one pixel), and after a first fit every
 pixel whose residual exceeds ``outlier_sigma`` robust sigmas is masked and the fit is refined.
 
-Uncertainties: Gauss-Newton / Fisher approximation ``cov = sigma^2 (J^T J)^-1`` with ``sigma^2``
-the residual variance, propagated to FWHMs by the delta method. It assumes white noise and a
-correct model, so it is a lower bound on real data.
+Noise model: photon noise differs between the dark and bright sides of an edge, so after the
+first, unweighted fit the residual sigma is estimated per bin of the fitted level and the fit is
+refined by weighted least squares (weights ``1 / sigma^2``).
+
+Uncertainties: Gauss-Newton / Fisher approximation ``cov = sigma^2 (J^T W J)^-1`` with
+``sigma^2`` the weighted residual variance, propagated to FWHMs by the delta method. It assumes
+uncorrelated noise and a correct model, so it is a lower bound on real data (a blurred
+scintillator correlates neighbouring pixels' noise).
 """
 
 from __future__ import annotations
@@ -123,6 +132,7 @@ class _Prepared:
     high: float = 1.0
     shape: tuple[int, int] = (0, 0)
     keep: np.ndarray | None = None  # boolean (N,) after outlier rejection
+    weight: np.ndarray | None = None  # inverse noise variance (N,), mean 1; ones until a noise model is fitted
     n_impulses_masked: int = 0
 
 
@@ -149,16 +159,17 @@ def _sinc_and_derivative(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s, ds
 
 
-def _solve_levels(esf: np.ndarray, values: np.ndarray) -> tuple[float, float]:
-    """Least-squares dark and bright levels ``(a, b)`` of ``values ~ a (1 - esf) + b esf``.
+def _solve_levels(esf: np.ndarray, values: np.ndarray, weight: np.ndarray) -> tuple[float, float]:
+    """Weighted least-squares dark and bright levels ``(a, b)`` of ``values ~ a (1 - esf) + b esf``.
 
     Variable projection: the levels enter linearly, so they are solved in closed form for every
     blur and edge position; the gradient of the reduced cost is the partial gradient at these
     levels (their own partial derivatives vanish), so it stays exact.
     """
     one_minus = 1.0 - esf
-    s00, s01, s11 = _dot(one_minus, one_minus), _dot(one_minus, esf), _dot(esf, esf)
-    r0, r1 = _dot(one_minus, values), _dot(esf, values)
+    w_one_minus, w_esf = weight * one_minus, weight * esf
+    s00, s01, s11 = _dot(w_one_minus, one_minus), _dot(w_one_minus, esf), _dot(w_esf, esf)
+    r0, r1 = _dot(w_one_minus, values), _dot(w_esf, values)
     det = s00 * s11 - s01 * s01
     if not det > 1e-12 * max(s00 * s11, 1e-300):
         level = float(values.mean())
@@ -402,6 +413,7 @@ def _prepare(edge: EdgeImage, index: int, mask_impulses: bool) -> _Prepared:
     prep.low = float(np.median(far_dark)) if far_dark.size > 16 else lo
     prep.high = float(np.median(far_bright)) if far_bright.size > 16 else hi
     prep.keep = np.ones(prep.values.size, bool)
+    prep.weight = np.ones(prep.values.size)
     return prep
 
 
@@ -482,10 +494,11 @@ class _JointProblem:
                                 esf=e0 + frac * (e1 - e0), slope=(e1 - e0) / grid.step)
         esf = w * parts["core"]["esf"] + (1.0 - w) * parts["tail"]["esf"]
         slope = w * parts["core"]["slope"] + (1.0 - w) * parts["tail"]["slope"]
-        low, high = _solve_levels(esf, e.values[e.keep])
+        pixel_weight = e.weight[e.keep]
+        low, high = _solve_levels(esf, e.values[e.keep], pixel_weight)
         model = low + (high - low) * esf
         return dict(e=e, phi=phi, d=d, esf=esf, slope=slope, model=model, parts=parts, w=w,
-                    x=x, y=yv, low=low, high=high)
+                    x=x, y=yv, low=low, high=high, pixel_weight=pixel_weight)
 
     def cost_and_gradient(self, theta: np.ndarray):
         fwhm, local = self.unpack(theta)
@@ -496,7 +509,8 @@ class _JointProblem:
         for j in range(len(self.edges)):
             t = self._edge_terms(j, fwhm, local[j], True)
             r = t["model"] - t["e"].values[t["e"].keep]
-            cost += 0.5 * scale * _dot(r, r)
+            wr = t["pixel_weight"] * r     # weighted residual: d(cost)/d(model) up to the scale
+            cost += 0.5 * scale * _dot(wr, r)
             contrast = t["high"] - t["low"]
             w = t["w"]
             g_phi_grid = 0.0
@@ -504,16 +518,16 @@ class _JointProblem:
                 part = t["parts"][label]
                 if weight == 0.0:
                     continue
-                r_hat = part["grid"].backproject(part["i0"], part["frac"], r)
+                r_hat = part["grid"].backproject(part["i0"], part["frac"], wr)
                 k = scale * contrast * weight
                 grad_global["sx"] += k * part["grid"].inner(part["derivs"]["sx"], r_hat)
                 grad_global["sy"] += k * part["grid"].inner(part["derivs"]["sy"], r_hat)
                 grad_global[label] += k * part["grid"].inner(part["derivs"]["component"], r_hat)
                 g_phi_grid += k * part["grid"].inner(part["derivs"]["phi"], r_hat)
-            grad_global["w"] += scale * contrast * _dot(r, t["parts"]["core"]["esf"] - t["parts"]["tail"]["esf"])
+            grad_global["w"] += scale * contrast * _dot(wr, t["parts"]["core"]["esf"] - t["parts"]["tail"]["esf"])
             dd_dphi = -t["x"] * math.sin(t["phi"]) + t["y"] * math.cos(t["phi"])
-            g_phi = scale * contrast * _dot(r * t["slope"], dd_dphi) + g_phi_grid
-            grad_local[j, 0] = -scale * contrast * _dot(r, t["slope"])
+            g_phi = scale * contrast * _dot(wr * t["slope"], dd_dphi) + g_phi_grid
+            grad_local[j, 0] = -scale * contrast * _dot(wr, t["slope"])
             grad_local[j, 1] = g_phi / t["e"].angle_scale_px
         gradient = np.empty_like(theta)
         for k, name in enumerate(self.global_free):
@@ -523,7 +537,7 @@ class _JointProblem:
         return cost, gradient
 
     def residuals_and_jacobian_normal(self, theta: np.ndarray):
-        """Residuals per edge and the Gauss-Newton matrix ``J^T J``.
+        """Residuals per edge and the weighted Gauss-Newton matrix ``J^T W J``.
 
         Columns: the optimiser's parameters, then ``(a_j, b_j)`` of every edge.
         """
@@ -567,7 +581,7 @@ class _JointProblem:
             cols += [-contrast * t["slope"], dphi / t["e"].angle_scale_px, 1.0 - t["esf"], t["esf"]]
             index += [base, base + 1, levels, levels + 1]
             block = np.stack(cols, axis=1)
-            jtj[np.ix_(index, index)] += np.einsum("ij,ik->jk", block, block)
+            jtj[np.ix_(index, index)] += np.einsum("i,ij,ik->jk", t["pixel_weight"], block, block)
             residuals.append(r)
             terms.append(t)
         return residuals, jtj, terms
@@ -649,7 +663,7 @@ def _profiles(t: dict, values: np.ndarray, bin_px: float = 0.25, half_range_px: 
 def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power: float = 1.0,
               fit_source: bool | None = None, tail_fwhm_max_px: float | None = None,
               esf_step_px: float = DEFAULT_ESF_STEP_PX, outlier_sigma: float | None = 5.0,
-              mask_impulses: bool = True, max_iterations: int = 2000,
+              weight_by_noise: bool = True, mask_impulses: bool = True, max_iterations: int = 2000,
               progress: Callable[[int, int], None] | None = None) -> PSFModel:
     """Fit the source + detector blur model jointly to several edge radiographs.
 
@@ -672,8 +686,12 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
     esf_step_px : float
         Spacing of the fine ESF grid, pixels (default 1/16).
     outlier_sigma : float or None
-        After a first fit, mask pixels whose residual exceeds this many robust sigmas and refit;
-        None disables.
+        After a first fit, mask pixels whose residual exceeds this many robust sigmas (estimated
+        per bin of the fitted level) and refit; None disables.
+    weight_by_noise : bool
+        After a first (unweighted) fit, refit by weighted least squares with weights ``1 / sigma^2``
+        from the residual sigma per bin of the fitted level (photon noise is larger on the bright
+        side of an edge than under the plate); skipped for an edge whose sigmas differ by < 25 %.
     mask_impulses : bool
         Mask bright impulses (gamma hits) before fitting.
     max_iterations : int
@@ -739,7 +757,7 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
     problem = _JointProblem(prepared, shape_power, fit_source, tie, tail_fwhm_max_px, esf_step_px, noise0,
                             core_fwhm_max_px)
     total_iterations, evaluations, n_rejected = 0, 0, 0
-    passes = 2 if outlier_sigma else 1
+    passes = 2 if (outlier_sigma or weight_by_noise) else 1
     for pass_index in range(passes):
         problem.n_total_pixels = sum(int(p.keep.sum()) for p in prepared)
         counter = {"it": 0}
@@ -757,26 +775,38 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
         total_iterations += int(result.nit)
         evaluations += int(result.nfev)
         if pass_index + 1 < passes:
+            # Noise model from the first pass: robust residual sigma per bin of the fitted level.
             fwhm, local = problem.unpack(theta)
             changed = False
             for j, p in enumerate(prepared):
                 t = problem._edge_terms(j, fwhm, local[j], False)
                 r = t["model"] - p.values[p.keep]
-                full = np.zeros(p.values.size)
-                full[p.keep] = np.abs(r) / _local_sigma(t["esf"], r)
-                bad = p.keep & (full > outlier_sigma)
-                if bad.any():
-                    p.keep = p.keep & ~bad
-                    n_rejected += int(bad.sum())
+                sigma = _local_sigma(t["esf"], r)
+                # Weight only when the noise really differs across levels (> 25 %): a near-uniform
+                # noise model would just cost a second optimisation for nothing.
+                if (weight_by_noise and np.all(np.isfinite(sigma)) and np.all(sigma > 0)
+                        and sigma.max() > 1.25 * sigma.min()):
+                    weight = 1.0 / sigma ** 2
+                    p.weight = np.ones(p.values.size)
+                    p.weight[p.keep] = weight / weight.mean()
                     changed = True
+                if outlier_sigma:
+                    full = np.zeros(p.values.size)
+                    full[p.keep] = np.abs(r) / sigma
+                    bad = p.keep & (full > outlier_sigma)
+                    if bad.any():
+                        p.keep = p.keep & ~bad
+                        n_rejected += int(bad.sum())
+                        changed = True
             if not changed:
                 break
 
     residuals, jtj, terms = problem.residuals_and_jacobian_normal(theta)
     all_res = np.concatenate(residuals)
+    all_weights = np.concatenate([t["pixel_weight"] for t in terms])
     n_obs, n_par = all_res.size, theta.size + 2 * len(prepared)
     rss = _dot(all_res, all_res)
-    sigma2 = rss / max(n_obs - n_par, 1)
+    sigma2 = _dot(all_weights * all_res, all_res) / max(n_obs - n_par, 1)   # per unit weight
     cov = _inverse_fisher(jtj) * sigma2
     fwhm, local = problem.unpack(theta)
 
@@ -814,6 +844,7 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
         "cost": float(result.fun), "iterations": total_iterations, "evaluations": evaluations,
         "converged": bool(result.success), "optimizer_message": str(result.message),
         "n_images": len(prepared), "n_pixels": int(n_obs), "n_outliers_masked": n_rejected,
+        "noise_weighted": bool(any(np.ptp(p.weight) > 0 for p in prepared)),
         "source_fitted": bool(fit_source), "source_axes_tied": bool(tie),
         "shape_power": shape_power, "tail_fwhm_max_px": float(tail_fwhm_max_px),
         "fit_time_s": round(time.perf_counter() - started, 3),
