@@ -210,6 +210,10 @@ def test_load_edge_config(tmp_path, rng):
         'source_to_detector_mm = 2\nroi = [0, 0, 10]\n': "roi",
         'pixel_pitch_mm = 0.01\n': "edges",
         'pixel_pitch_mm = 0.01\n[[edges]\n': "not valid TOML",
+        'pixel_pitch_mm = 0.01\npixel_pich = 2\n[[edges]]\nimage = "e.tif"\nsource_to_object_mm = 1\n'
+        'source_to_detector_mm = 2\n': "pixel_pich",
+        'pixel_pitch_mm = 0.01\n[[edges]]\nimage = "e.tif"\nsource_to_object_mm = 1\n'
+        'source_to_detector_mm = 2\nbrigth = "flat.tif"\n': "brigth",
     }
     for text, key in bad_cases.items():
         cfg_path.write_text(text)

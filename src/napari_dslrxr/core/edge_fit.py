@@ -955,6 +955,10 @@ def load_edge_config(path: str | os.PathLike) -> EdgeConfig:
         raise InputError(config, f"cannot read: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(config, f"not valid TOML ({exc})") from None
+    unknown_top = set(record) - {"pixel_pitch_mm", "shape_power", "edges"}
+    if unknown_top:
+        raise InputError(config, f"unknown key {sorted(unknown_top)[0]!r} (expected pixel_pitch_mm, "
+                                 f"shape_power, [[edges]])")
     if "pixel_pitch_mm" not in record:
         raise InputError(config, "missing key 'pixel_pitch_mm'")
     pitch = _number(config, "pixel_pitch_mm", record["pixel_pitch_mm"])
