@@ -4,7 +4,8 @@ Protocol (issue 2): eight repeats of one exposure. Subtract the dark level, scal
 frame to the open-beam level, leave out a band of ``EDGE_BAND_PX`` around the plate edge
 (the plate shifts by a few pixels between repeats), and take the per-pixel median of the
 scaled repeats as the reference. Spot pixels of a frame are more than 6 sigma above the
-reference, sigma being the repeats' noise at that intensity. Fixed-pattern outliers (hot
+reference, sigma being the repeats' noise at that intensity (from differences of pairs of
+repeats, at the repeat's own local level). Fixed-pattern outliers (hot
 pixels, screen defects: more than 6 sigma from the reference's own 5x5 median) are in every
 repeat, so they count neither as spots nor in the percentage error.
 
@@ -38,6 +39,8 @@ class NiqaSet:
     reference: np.ndarray       # (H, W) float64, median of scaled repeats
     offsets: np.ndarray         # (8, H, W) slow difference of each scaled repeat to the reference
     sigma: np.ndarray           # (H, W) float64, single-frame noise at the reference's level
+    noise_levels: np.ndarray    # level -> single-frame noise curve (counts, scaled units)
+    noise_sigmas: np.ndarray
     evaluated: np.ndarray       # (H, W) bool: outside the edge band and not fixed pattern
 
 
@@ -72,14 +75,16 @@ def load_niqa(folder: Path) -> NiqaSet:
     # the plate's shadow, plate shift in the PSF tails).
     offsets = np.stack([_slow_part(f - reference) for f in scaled])
     aligned = scaled - offsets
-    sigma = _noise_versus_level(aligned, reference, ~band)
+    noise_levels, noise_sigmas = _noise_curve(aligned, reference, ~band)
+    sigma = np.interp(reference, noise_levels, noise_sigmas)
     # The reference is a median of 8 repeats: its own noise is sqrt(pi/2)/sqrt(8) of one
     # repeat's. Pixels that deviate from their 5x5 neighbourhood by more than 6 of those
     # sigmas are a fixed pattern of the screen or sensor (present in every repeat).
     sigma_reference = sigma * np.sqrt(np.pi / 2.0 / N_FRAMES)
     local = ndi.median_filter(reference, size=5, mode="reflect")
     fixed_pattern = np.abs(reference - local) > SPOT_SIGMA * sigma_reference
-    return NiqaSet(frames, dark_level, scales, reference, offsets, sigma, ~band & ~fixed_pattern)
+    return NiqaSet(frames, dark_level, scales, reference, offsets, sigma, noise_levels, noise_sigmas,
+                   ~band & ~fixed_pattern)
 
 
 def _despeckle(image: np.ndarray) -> np.ndarray:
@@ -106,8 +111,18 @@ def _edge_slope(image: np.ndarray) -> np.ndarray:
 
 
 def _noise_versus_level(scaled: np.ndarray, reference: np.ndarray, region: np.ndarray) -> np.ndarray:
-    """Single-frame noise (robust spread over the repeats) as a function of the reference level."""
-    residual = np.abs(scaled - reference[None])
+    """Single-frame noise at the reference's level, per pixel (see :func:`_noise_curve`)."""
+    return np.interp(reference, *_noise_curve(scaled, reference, region))
+
+
+def _noise_curve(scaled: np.ndarray, reference: np.ndarray, region: np.ndarray):
+    """Single-frame noise as a function of the reference level.
+
+    From differences of pairs of repeats, (a - b)/sqrt(2), which have exactly one frame's
+    noise (a spread around the median of the repeats would not: each repeat is part of the
+    median), robustly: 1.4826 x the median absolute difference at each level.
+    """
+    residual = np.abs(scaled[0::2] - scaled[1::2]) / np.sqrt(2.0)
     levels = reference[region]
     edges = np.unique(np.percentile(levels, np.linspace(0, 100, 41)))
     centres, values = [], []
@@ -115,10 +130,8 @@ def _noise_versus_level(scaled: np.ndarray, reference: np.ndarray, region: np.nd
         sel = region & (reference >= lo) & (reference < hi)
         if sel.sum() > 100:
             centres.append(np.median(reference[sel]))
-            # MAD over all repeats and pixels at this level; the median of 8 repeats is
-            # itself noisy, hence the factor for the spread of x - median.
-            values.append(1.4826 * np.median(residual[:, sel]) * np.sqrt(N_FRAMES / (N_FRAMES - 1)))
-    return np.interp(reference, centres, values)
+            values.append(1.4826 * np.median(residual[:, sel]))
+    return np.asarray(centres), np.asarray(values)
 
 
 @dataclass
@@ -132,7 +145,9 @@ def score_frame(data: NiqaSet, index: int, cleaned: np.ndarray) -> FrameScore:
     """Spot removal (%) and PE (%) on the remaining pixels for one cleaned frame."""
     before = (data.frames[index].astype(np.float64) - data.dark_level) * data.scales[index]
     after = (cleaned.astype(np.float64) - data.dark_level) * data.scales[index]
-    limit = data.reference + data.offsets[index] + SPOT_SIGMA * data.sigma
+    # The repeat's own level (the source decays over the series): its noise is that level's.
+    level = data.reference + data.offsets[index]
+    limit = level + SPOT_SIGMA * np.interp(level, data.noise_levels, data.noise_sigmas)
     spots = (before > limit) & data.evaluated
     removed = spots & (after <= limit)
     rest = data.evaluated & ~spots
