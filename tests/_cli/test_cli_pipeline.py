@@ -75,3 +75,19 @@ def test_config_and_usage_errors(tmp_path, inputs, capsys):
     assert "contrast.bone_contrast" in capsys.readouterr().err
     assert main(["run", str(inputs["shot1"]), "-o", str(tmp_path / "o"), "--psf", str(cfg)]) == 2
     assert "--source-to-object-mm" in capsys.readouterr().err
+
+
+def test_psf_model_turns_on_deblurring(tmp_path, inputs):
+    import json
+
+    from napari_dslrxr.core.psf import PSFModel, save_psf
+
+    psf = save_psf(PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.3, source_fwhm_y_mm=0.3,
+                            detector_fwhm_core_mm=0.15, detector_fwhm_tail_mm=0.4,
+                            detector_weight_core=0.8, shape_power=1.5), tmp_path / "psf.json")
+    out = tmp_path / "o"
+    assert main(["run", str(inputs["shot1"]), "-o", str(out), "--flat", str(inputs["flat"]),
+                 "--psf", str(psf), "--source-to-object-mm", "500", "--source-to-detector-mm", "1000"]) == 0
+    side = json.loads((out / "shot1_dslrxr.tif.json").read_text())
+    assert side["results"]["deblur"]["method"] == "adaptive"
+    assert any(entry["path"].endswith("psf.json") for entry in side["inputs"])
