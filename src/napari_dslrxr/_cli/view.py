@@ -46,15 +46,21 @@ def populate_viewer(viewer: napari.Viewer, files: list[Path], *, cfa_planes: boo
     """Open ``files`` with the plugin's reader and dock ``widgets`` (default: all of them).
 
     Returns the docked widgets (magicgui containers) in order. The widgets are tabbed in the
-    right dock area so the canvas keeps its room.
+    right dock area so the canvas keeps its room, with the first one (impulse removal) in front.
     """
     for path in files:
         viewer.open(str(path), plugin=READER_CFA if cfa_planes else READER_RGB)
-    docked = []
+    docked, docks = [], []
     names = plugin_widget_names() if widgets is None else widgets
     for i, name in enumerate(names):
-        _, widget = viewer.window.add_plugin_dock_widget(PLUGIN_NAME, name, tabify=i > 0)
+        dock, widget = viewer.window.add_plugin_dock_widget(PLUGIN_NAME, name, tabify=i > 0)
         docked.append(widget)
+        docks.append(dock)
+    if docks:
+        from qtpy.QtCore import QTimer
+
+        # The first stage's tab in front; deferred, as Qt lays the tabs out after this returns.
+        QTimer.singleShot(0, docks[0].raise_)
     return docked
 
 
