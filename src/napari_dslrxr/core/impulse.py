@@ -820,21 +820,23 @@ def cfa_mask_to_mosaic(masks: dict[str, np.ndarray], plane_offsets, shape: tuple
 
 
 def demosaic_cleaned_raw(path, cleaned_planes: np.ndarray, raw_frame) -> np.ndarray:
-    """Demosaic a raw file after replacing its CFA values by cleaned planes.
+    """Demosaic a raw file after putting cleaned CFA planes back into its mosaic.
 
-    Opens ``path`` again with rawpy, writes the cleaned planes (plus the black level,
-    rounded, clipped to [0, white level]) into ``raw_image_visible`` and post-processes
-    exactly as :func:`napari_dslrxr.core.io.read_raw` does (camera white balance, gamma 1,
-    no auto-brightening, 16 bit).
+    Opens ``path`` again with rawpy, writes the cleaned values (plus each plane's black
+    level, rounded, clipped to [0, white level]) into ``raw_image_visible`` where they
+    differ from the original planes, and post-processes with the options of
+    :func:`napari_dslrxr.core.io.read_raw` (camera white balance, camera colour space,
+    gamma 1, no auto-brightening, scaled by the white level, 16 bit). With unchanged planes
+    the result equals ``read_image(path).data`` (tested).
 
     Parameters
     ----------
     path : path-like
         The raw file the planes came from.
     cleaned_planes : ndarray, float32, (4, h, w)
-        Counts above black, R, G1, G2, B.
+        Counts above black, R, G1, G2, B (from :func:`remove_impulses_cfa`).
     raw_frame : napari_dslrxr.core.io.RawFrame
-        Gives the plane offsets, black levels and white level.
+        The frame read from ``path``: original planes, plane offsets, black and white level.
 
     Returns
     -------
@@ -843,14 +845,27 @@ def demosaic_cleaned_raw(path, cleaned_planes: np.ndarray, raw_frame) -> np.ndar
     """
     import rawpy
 
-    with rawpy.imread(str(path)) as raw:
-        visible = raw.raw_image_visible
-        for plane, (r, c), black in zip(cleaned_planes, raw_frame.plane_offsets,
-                                         raw_frame.black_level, strict=True):
-            target = visible[r::2, c::2]
-            hh, ww = min(target.shape[0], plane.shape[0]), min(target.shape[1], plane.shape[1])
-            values = np.clip(np.rint(plane[:hh, :ww].astype(np.float64) + float(black)), 0,
-                             raw_frame.white_level)
-            target[:hh, :ww] = values.astype(visible.dtype)
-        return raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16,
-                               use_camera_wb=True, user_flip=0)
+    cleaned = np.asarray(cleaned_planes)
+    if cleaned.shape != raw_frame.cfa_planes.shape:
+        raise InputError(str(path), f"cleaned planes {cleaned.shape} do not match the file's "
+                                    f"{raw_frame.cfa_planes.shape}")
+    try:
+        with rawpy.imread(str(path)) as raw:
+            visible = raw.raw_image_visible
+            for plane, original, (r, c), black in zip(cleaned, raw_frame.cfa_planes,
+                                                       raw_frame.plane_offsets, raw_frame.black_level,
+                                                       strict=True):
+                changed = plane != original
+                if not changed.any():
+                    continue
+                rows, cols = np.nonzero(changed)
+                values = np.clip(np.rint(plane[rows, cols].astype(np.float64) + float(black)), 0,
+                                 raw_frame.white_level)
+                visible[2 * rows + r, 2 * cols + c] = values.astype(visible.dtype)
+            return raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16,
+                                   use_camera_wb=True, user_flip=0,
+                                   output_color=rawpy.ColorSpace.raw, adjust_maximum_thr=0.0)
+    except InputError:
+        raise
+    except Exception as exc:  # rawpy.LibRawError and friends
+        raise InputError(str(path), f"cannot demosaic the cleaned raw data ({exc})") from None
