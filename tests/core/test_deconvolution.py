@@ -90,7 +90,7 @@ def test_adaptive_default_beats_best_skimage_wiener(scene):
     truth, kernel, noisy = scene
     ours = psnr(truth, dc.deconvolve(noisy, kernel))  # adaptive, reg="auto": no truth used
     baseline = best_skimage_wiener(truth, noisy, kernel)
-    assert ours > baseline, f"adaptive {ours:.2f} dB vs skimage wiener best {baseline:.2f} dB"
+    assert ours > baseline + 0.3, f"adaptive {ours:.2f} dB vs skimage wiener best {baseline:.2f} dB"
 
 
 def test_auto_reg_is_close_to_the_truth_optimum_for_rls(scene):
