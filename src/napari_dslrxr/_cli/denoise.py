@@ -1,9 +1,151 @@
-"""``dslrxr`` sub-commands for this area (see the module docstring of napari_dslrxr._cli)."""
+"""``dslrxr denoise`` (impulse removal) and ``dslrxr metrics pe|gcf``.
+
+``denoise`` writes a TIFF with the input's shape and dtype (for camera raw input, the
+linear 16-bit RGB) in which only detected pulses are replaced, optionally a uint8 mask
+TIFF (255 where any channel's pixel was replaced), and a provenance sidecar beside each
+output holding the estimated gain and pulse rate of every channel.
+"""
 
 from __future__ import annotations
 
+import time
+from pathlib import Path
+from typing import Optional
+
 import typer
+
+SPACES = ("auto", "grey", "hsv", "cfa")
+
+
+def parse_passes(text: str | None) -> dict[str, int]:
+    """``"H,S,V"`` -> passes on hue, saturation, value; a single ``"N"`` -> grey/CFA passes."""
+    from ..core.errors import ParameterError
+    from .common import parse_int_list
+
+    if text is None:
+        return {}
+    if "," not in text:
+        try:
+            return {"passes_grey": int(text)}
+        except ValueError:
+            raise ParameterError(f"--passes: expected H,S,V or one integer, got {text!r}") from None
+    h, s, v = parse_int_list(text, 3, "--passes")
+    return {"passes_h": h, "passes_s": s, "passes_v": v}
+
+
+def _results(result) -> dict:
+    """Gain, pulse rate and replaced-pixel count of each channel, for the sidecar."""
+    import numpy as np
+
+    return {
+        "gain": {k: float(v) for k, v in result.gain.items()},
+        "pulse_rate": {k: float(v) for k, v in result.pulse_rate.items()},
+        "replaced_px": {k: int(np.count_nonzero(m)) for k, m in result.masks.items()},
+    }
+
+
+def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, space: str = "auto",
+                 mask_out: Path | None = None) -> dict:
+    """Run impulse removal on one file and write the outputs; return the sidecar results."""
+    import dataclasses
+
+    import numpy as np
+
+    from ..core.errors import ParameterError
+    from ..core.impulse import (
+        ImpulseParams,
+        cfa_mask_to_mosaic,
+        demosaic_cleaned_raw,
+        remove_impulses,
+        remove_impulses_cfa,
+    )
+    from ..core.io import check_not_an_input, read_image, write_tiff
+    from ..core.provenance import write_sidecar
+    from .common import ensure_parent
+
+    if space not in SPACES:
+        raise ParameterError(f"--space: must be one of {', '.join(SPACES)}, got {space!r}")
+    params = ImpulseParams(**parse_passes(passes))
+    if mask_out is not None and Path(mask_out).resolve() == Path(output).resolve():
+        raise ParameterError("--mask-out must differ from the output file")
+    check_not_an_input(output, [input_path])
+    if mask_out is not None:
+        check_not_an_input(mask_out, [input_path])
+    t0 = time.perf_counter()
+    loaded = read_image(input_path)
+    t_read = time.perf_counter() - t0
+    is_raw = loaded.format == "raw" and loaded.raw is not None
+    used_space = ("cfa" if is_raw else "grey" if loaded.data.ndim == 2 else "hsv") if space == "auto" else space
+    t0 = time.perf_counter()
+    if used_space == "cfa":
+        if not is_raw:
+            raise ParameterError(f"--space cfa needs a camera raw input; {input_path} is {loaded.format}")
+        result = remove_impulses_cfa(loaded.raw.cfa_planes, params)
+        image = demosaic_cleaned_raw(input_path, result.image, loaded.raw)
+        mask = cfa_mask_to_mosaic(result.masks, loaded.raw.plane_offsets, image.shape[:2])
+    else:
+        result = remove_impulses(loaded.data, params, space=used_space)
+        image = result.image
+        mask = result.any_mask()
+    t_denoise = time.perf_counter() - t0
+    results = {"space": used_space, **_results(result)}
+    parameters = {**dataclasses.asdict(params), "space": used_space}
+    timings = {"read": t_read, "denoise": t_denoise}
+    ensure_parent(output)
+    write_tiff(output, image, inputs=[input_path])
+    write_sidecar(output, stage="denoise", parameters=parameters, inputs=[input_path],
+                  timings_s=timings, results=results)
+    if mask_out is not None:
+        ensure_parent(mask_out)
+        write_tiff(mask_out, np.where(mask, 255, 0).astype(np.uint8), inputs=[input_path, output])
+        write_sidecar(mask_out, stage="denoise-mask", parameters=parameters, inputs=[input_path],
+                      timings_s=timings, results=results)
+    return results
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to ``app``; commands are added as the stages land."""
+    """Add ``denoise`` and the ``metrics`` group (``pe``, ``gcf``) to ``app``."""
+
+    @app.command("denoise")
+    def denoise_command(
+        input_path: Path = typer.Argument(..., metavar="INPUT", help="Linear image: TIFF, PNG, DICOM or camera raw."),
+        output: Path = typer.Option(..., "-o", "--output", help="Output TIFF (input's shape and dtype; raw: 16-bit RGB)."),
+        passes: Optional[str] = typer.Option(None, "--passes", help="H,S,V passes (default 3,1,1), or one number for grey/CFA."),
+        space: str = typer.Option("auto", "--space", help="auto | grey | hsv | cfa (auto: cfa for raw, hsv for RGB, grey for grey)."),
+        mask_out: Optional[Path] = typer.Option(None, "--mask-out", help="uint8 TIFF, 255 where a pixel was replaced."),
+    ) -> None:
+        """Remove impulse noise (zingers) from INPUT: only detected pulses are replaced."""
+        results = denoise_file(input_path, output, passes=passes, space=space, mask_out=mask_out)
+        rates = ", ".join(f"{k} {v:.4g}" for k, v in results["pulse_rate"].items())
+        gains = ", ".join(f"{k} {v:.4g}" for k, v in results["gain"].items() if v == v)
+        typer.echo(f"{output}: space {results['space']}; pulse rate {rates}; gain {gains or 'n/a'}")
+
+    metrics_app = typer.Typer(help="Image-quality metrics: percentage error and global contrast factor.",
+                              no_args_is_help=True)
+
+    @metrics_app.command("pe")
+    def pe_command(
+        reference: Path = typer.Argument(..., metavar="A", help="Reference image."),
+        estimate: Path = typer.Argument(..., metavar="B", help="Processed image (same shape)."),
+        roi: Optional[str] = typer.Option(None, "--roi", help="r0,c0,r1,c1 in pixels, end exclusive."),
+    ) -> None:
+        """Print the percentage error 100*||A - B||/||A|| (in %) over the ROI."""
+        from ..core.io import read_image
+        from ..core.metrics import percentage_error
+        from .common import parse_roi
+
+        region = parse_roi(roi)
+        value = percentage_error(read_image(reference).data, read_image(estimate).data, roi=region)
+        typer.echo(f"{value:.6g}")
+
+    @metrics_app.command("gcf")
+    def gcf_command(
+        image: Path = typer.Argument(..., metavar="IMAGE", help="Display image (uint8, uint16 or float in [0, 1])."),
+    ) -> None:
+        """Print the global contrast factor (Matkovic et al. 2005) of IMAGE."""
+        from ..core.io import read_image
+        from ..core.metrics import global_contrast_factor
+
+        typer.echo(f"{global_contrast_factor(read_image(image).data):.6g}")
+
+    app.add_typer(metrics_app, name="metrics")

@@ -116,8 +116,12 @@ class ImpulseParams:
     window_px: int = 5
     max_patch_px: int = 4
     bright_only: bool = True
-    min_contrast: float = 0.07
-    neighbour_prior: float = 0.5
+    min_contrast: float = field(default=0.07, metadata={
+        "help": "photon-counting channels: a pulse must also exceed the local median by this "
+                "fraction of it (Weber contrast, 0 to 1)"})
+    neighbour_prior: float = field(default=0.5, metadata={
+        "help": "prior pulse probability of a pixel touching a detected pulse, for patch rims "
+                "(0 < p < 1)"})
     posterior_threshold: float = 0.5
     min_saturation: float = 0.05
     min_value_fraction: float = 0.02
