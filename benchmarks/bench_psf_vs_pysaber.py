@@ -29,7 +29,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+# Both tools with single-threaded BLAS (inherited by the pysaber subprocess): on a shared 2-core
+# machine multi-threaded BLAS only adds contention, and it keeps the comparison like for like.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

@@ -451,6 +451,17 @@ class _JointProblem:
             self.global_free = ["core", "tail", "w"]
         self.n_global = len(self.global_free)
         self.n_total_pixels = sum(int(e.keep.sum()) for e in edges)
+        self._kept_cache: dict[int, tuple] = {}
+
+    def _kept(self, j: int):
+        """Coordinates, values and weights of edge ``j``'s used pixels (cached per mask/weights)."""
+        e = self.edges[j]
+        cached = self._kept_cache.get(j)
+        if cached is None or cached[0] is not e.keep or cached[1] is not e.weight:
+            keep = e.keep
+            cached = (e.keep, e.weight, e.x_px[keep], e.y_px[keep], e.values[keep], e.weight[keep])
+            self._kept_cache[j] = cached
+        return cached[2:]
 
     def unpack(self, theta: np.ndarray):
         g = dict(zip(self.global_free, theta[:self.n_global]))
@@ -481,7 +492,7 @@ class _JointProblem:
         offset, angle_scaled = local_j
         phi = e.angle_rad + angle_scaled / e.angle_scale_px
         cphi, sphi = math.cos(phi), math.sin(phi)
-        x, yv = e.x_px[e.keep], e.y_px[e.keep]
+        x, yv, values, pixel_weight = self._kept(j)
         d = x * cphi + yv * sphi - offset
         w = fwhm["w"]
         parts = {}
@@ -494,11 +505,10 @@ class _JointProblem:
                                 esf=e0 + frac * (e1 - e0), slope=(e1 - e0) / grid.step)
         esf = w * parts["core"]["esf"] + (1.0 - w) * parts["tail"]["esf"]
         slope = w * parts["core"]["slope"] + (1.0 - w) * parts["tail"]["slope"]
-        pixel_weight = e.weight[e.keep]
-        low, high = _solve_levels(esf, e.values[e.keep], pixel_weight)
+        low, high = _solve_levels(esf, values, pixel_weight)
         model = low + (high - low) * esf
         return dict(e=e, phi=phi, d=d, esf=esf, slope=slope, model=model, parts=parts, w=w,
-                    x=x, y=yv, low=low, high=high, pixel_weight=pixel_weight)
+                    x=x, y=yv, low=low, high=high, pixel_weight=pixel_weight, values=values)
 
     def cost_and_gradient(self, theta: np.ndarray):
         fwhm, local = self.unpack(theta)
@@ -508,7 +518,7 @@ class _JointProblem:
         grad_local = np.zeros_like(local)
         for j in range(len(self.edges)):
             t = self._edge_terms(j, fwhm, local[j], True)
-            r = t["model"] - t["e"].values[t["e"].keep]
+            r = t["model"] - t["values"]
             wr = t["pixel_weight"] * r     # weighted residual: d(cost)/d(model) up to the scale
             cost += 0.5 * scale * _dot(wr, r)
             contrast = t["high"] - t["low"]
@@ -548,7 +558,7 @@ class _JointProblem:
         residuals, terms = [], []
         for j in range(len(self.edges)):
             t = self._edge_terms(j, fwhm, local[j], True)
-            r = t["model"] - t["e"].values[t["e"].keep]
+            r = t["model"] - t["values"]
             contrast = t["high"] - t["low"]
             w = t["w"]
 
@@ -757,20 +767,39 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
     problem = _JointProblem(prepared, shape_power, fit_source, tie, tail_fwhm_max_px, esf_step_px, noise0,
                             core_fwhm_max_px)
     total_iterations, evaluations, n_rejected = 0, 0, 0
+    counter = {"it": 0}
+
+    def callback(_xk):
+        counter["it"] += 1
+        if progress is not None:
+            progress(min(counter["it"], max_iterations), max_iterations)
+
+    def minimise(start, ftol):
+        """L-BFGS-B in diagonally preconditioned coordinates ``z = theta * D``.
+
+        ``D`` is the square root of the Gauss-Newton Hessian diagonal at the start, so every
+        coordinate has unit curvature; the gradient is rescaled exactly (``dC/dz = dC/dtheta / D``).
+        """
+        problem.n_total_pixels = sum(int(p.keep.sum()) for p in prepared)
+        _, jtj, _ = problem.residuals_and_jacobian_normal(start)
+        diag = np.diag(jtj)[:start.size] / (problem.n_total_pixels * problem.noise_scale ** 2)
+        scale = np.sqrt(np.where(diag > 0, diag, 1.0))
+
+        def scaled(z):
+            cost, grad = problem.cost_and_gradient(z / scale)
+            return cost, grad / scale
+
+        bounds = [(None if lo is None else lo * sc, None if hi is None else hi * sc)
+                  for (lo, hi), sc in zip(problem.bounds(), scale)]
+        res = optimize.minimize(scaled, start * scale, jac=True, method="L-BFGS-B", bounds=bounds,
+                                callback=callback,
+                                options={"maxiter": max_iterations, "ftol": ftol, "gtol": 1e-9, "maxcor": 20})
+        res.x = res.x / scale
+        return res
+
     passes = 2 if (outlier_sigma or weight_by_noise) else 1
     for pass_index in range(passes):
-        problem.n_total_pixels = sum(int(p.keep.sum()) for p in prepared)
-        counter = {"it": 0}
-
-        def callback(_xk):
-            counter["it"] += 1
-            if progress is not None:
-                progress(min(counter["it"], max_iterations), max_iterations)
-
-        result = optimize.minimize(problem.cost_and_gradient, theta, jac=True, method="L-BFGS-B",
-                                   bounds=problem.bounds(), callback=callback,
-                                   options={"maxiter": max_iterations, "ftol": 1e-12, "gtol": 1e-9,
-                                            "maxcor": 20})
+        result = minimise(theta, 1e-12)
         theta = result.x
         total_iterations += int(result.nit)
         evaluations += int(result.nfev)
