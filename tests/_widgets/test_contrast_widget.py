@@ -42,7 +42,7 @@ def _apply(widget, wait_for_worker, **values):
     return widget.result.copy()
 
 
-def test_latitude_and_bone_contrast_sliders(docked, phantom, wait_for_worker):
+def test_latitude_and_bone_contrast_sliders(docked, phantom, wait_for_worker, errors_shown):
     viewer, widget = docked
     assert widget._kind.value == LINEAR
     inner = cv2.erode(phantom.truth.screen_mask.astype(np.uint8), np.ones((25, 25), np.uint8)).astype(bool)
@@ -52,6 +52,7 @@ def test_latitude_and_bone_contrast_sliders(docked, phantom, wait_for_worker):
     assert viewer.layers["frame contrast"].data is widget.result
     low_lat = _apply(widget, wait_for_worker, latitude=0.3)
     bone = _apply(widget, wait_for_worker, latitude=1.0, bone_contrast=3.0)
+    assert not errors_shown, errors_shown
     plain_low, plain_detail = _split(plain, inner)
     lat_low, _ = _split(low_lat, inner)
     _, bone_detail = _split(bone, inner)

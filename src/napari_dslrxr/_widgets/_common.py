@@ -186,13 +186,24 @@ def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: s
             getattr(layer, "rgb", False) == bool(kwargs.get("rgb", False))
         ):
             layer.data = data
-            for key in ("scale", "translate", "metadata", "colormap", "opacity", "visible"):
-                if key in kwargs:
+            # Set only what changed: every setter makes napari refresh the layer (costly
+            # when a live preview updates it several times a second).
+            for key in ("scale", "translate"):
+                if key in kwargs and not np.allclose(getattr(layer, key)[-2:], kwargs[key]):
                     setattr(layer, key, kwargs[key])
+            if "colormap" in kwargs and getattr(layer.colormap, "name", None) != kwargs["colormap"]:
+                layer.colormap = kwargs["colormap"]
+            for key in ("opacity", "visible"):
+                if key in kwargs and getattr(layer, key) != kwargs[key]:
+                    setattr(layer, key, kwargs[key])
+            if "metadata" in kwargs:
+                layer.metadata = kwargs["metadata"]
             if layer_type == "image":
-                limits = kwargs.get("contrast_limits") or robust_limits(data)
-                layer.contrast_limits_range = limits
-                layer.contrast_limits = limits
+                limits = tuple(kwargs.get("contrast_limits") or robust_limits(data))
+                if tuple(layer.contrast_limits_range) != limits:
+                    layer.contrast_limits_range = limits
+                if tuple(layer.contrast_limits) != limits:
+                    layer.contrast_limits = limits
             return layer
         viewer.layers.remove(layer)
     if layer_type == "image" and "contrast_limits" not in kwargs:

@@ -1,0 +1,41 @@
+"""Helpers of the widgets that need no display: visible region and robust display limits."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from napari_dslrxr._widgets._common import robust_limits, visible_region
+
+
+def fake_viewer(centre_rc, zoom, canvas_hw):
+    camera = SimpleNamespace(center=(0.0, *centre_rc), zoom=zoom)
+    return SimpleNamespace(scene=SimpleNamespace(camera=camera), canvas=SimpleNamespace(size=canvas_hw))
+
+
+def fake_layer(shape, scale=(1.0, 1.0), translate=(0.0, 0.0)):
+    return SimpleNamespace(data=np.zeros(shape), scale=np.asarray(scale), translate=np.asarray(translate))
+
+
+def test_visible_region_follows_camera_scale_and_translate():
+    # 600 x 800 canvas at zoom 4 shows 150 x 200 world units around the centre.
+    viewer = fake_viewer((100.0, 300.0), 4.0, (600, 800))
+    rows, cols = visible_region(viewer, fake_layer((1000, 1000)))
+    assert (rows.start, rows.stop, cols.start, cols.stop) == (25, 176, 200, 401)
+    # Pixels of 0.5 world units, image shifted by (10, 20): twice as many pixels, offset.
+    rows, cols = visible_region(viewer, fake_layer((1000, 1000), (0.5, 0.5), (10.0, 20.0)))
+    assert (rows.start, rows.stop) == (30, 331) and (cols.start, cols.stop) == (360, 761)
+    # Margins are added and everything is clipped to the image.
+    rows, cols = visible_region(fake_viewer((5.0, 5.0), 1.0, (600, 800)), fake_layer((100, 120)), margin_px=8)
+    assert (rows.start, rows.stop, cols.start, cols.stop) == (0, 100, 0, 120)
+
+
+def test_robust_limits_ignore_outliers():
+    data = np.full((100, 100), 10.0)
+    data[:50] = 20.0
+    data[0, :5] = 1e6  # pulses
+    lo, hi = robust_limits(data)
+    assert lo == pytest.approx(10.0) and hi == pytest.approx(20.0)
+    assert robust_limits(np.zeros((4, 4))) == (0.0, 1.0)
