@@ -187,6 +187,7 @@ def run_case(name: str, rel: str, crop, kernel: np.ndarray, rng) -> dict:
         images[label] = x
 
     add("truth", truth, 0.0)
+    add("blurred, noise-free", blurred, 0.0)
     add("blurred + noise", noisy, 0.0)
     for method in ("adaptive", "rls", "wiener"):
         t0 = time.perf_counter()
