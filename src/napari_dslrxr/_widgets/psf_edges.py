@@ -100,8 +100,12 @@ class PSFEdgeWidget(Container):
 
     # -- the profile plot ----------------------------------------------------------------------------
     def _make_plot(self):
-        from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
-        from matplotlib.figure import Figure
+        try:
+            from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+            from matplotlib.figure import Figure
+        except ImportError:  # the plot is optional: pip install 'napari-dslrxr[napari]'
+            self._readout.value = "install matplotlib to see the fitted edge profiles"
+            return None, None
 
         figure = Figure(figsize=(4.0, 2.6), dpi=80, tight_layout=True)
         canvas = FigureCanvasQTAgg(figure)
@@ -111,6 +115,8 @@ class PSFEdgeWidget(Container):
 
     def plot_profiles(self, model: PSFModel) -> None:
         """Measured (dots) versus fitted (lines) ESF and LSF of every ROI."""
+        if self._figure is None:
+            return
         self._figure.clear()
         ax_esf, ax_lsf = self._figure.subplots(1, 2)
         for i, edge in enumerate(model.fit_report.get("edges", [])):
