@@ -81,3 +81,27 @@ def test_missing_flat_and_bad_file_are_notifications(make_napari_viewer, errors_
     bad.write_bytes(b"II*\x00garbage")
     widget._flat_file.value = bad
     assert "bad.tif" in errors_shown[-1] and widget._flat.value is None
+
+
+def test_sample_set_vignetting_removed(make_napari_viewer, wait_for_worker):
+    """On the DSLR sample: after the flat field, signal / (expected / gain map) is flat."""
+    from napari.layers import Layer
+
+    from napari_dslrxr import _sample_data as samples
+
+    viewer = make_napari_viewer()
+    dark, flat, radiograph = (viewer.add_layer(Layer.create(*t)) for t in samples.make_sample_dslr_set())
+    widget = FlatFieldWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    widget._image.value, widget._flat.value, widget._dark.value = radiograph, flat, dark
+    wait_for_worker(widget.run())
+    frames = samples._phantom()
+    truth = frames.truth
+    inner = truth.screen_mask & (truth.gain_map > 0.4)
+    inner[:, :40] = inner[:, -40:] = False
+    object_light = truth.clean_rgb[..., 1] / truth.gain_map  # green, without the vignetting
+    keep = inner & (object_light > 0.3 * object_light[inner].max())
+    before = (radiograph.data[..., 1].astype(float) - frames.black_level)[keep] / object_light[keep]
+    after = viewer.layers["DSLR radiograph flat-fielded"].data[..., 1][keep] / object_light[keep]
+    spread = [np.percentile(v, 90) / np.percentile(v, 10) for v in (before, after)]
+    assert spread[0] > 1.5 and spread[1] < 1.15
