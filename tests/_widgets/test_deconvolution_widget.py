@@ -127,3 +127,32 @@ def test_psf_file_and_missing_kernel(docked, tmp_path, errors_shown, wait_for_wo
     widget._reg.value = 10.0
     wait_for_worker(widget.run())
     assert _rms(viewer.layers["bars deconvolved"].data, sharp) < _rms(blurred, sharp)
+
+
+def test_sample_edge_sharpened_with_the_true_psf_file(make_napari_viewer, wait_for_worker, tmp_path):
+    """Sample edge (SOD 500 mm) + psf.json of its true blur: the 10-90 % edge rise shrinks."""
+    from napari.layers import Layer
+
+    from napari_dslrxr import _sample_data as samples
+    from napari_dslrxr.core.psf import PSFModel, save_psf
+
+    def rise_px(image):
+        profile = np.asarray(image)[20:108, 30:100].mean(axis=0)
+        profile = (profile - profile[:10].mean()) / (profile[-10:].mean() - profile[:10].mean())
+        profile = np.maximum.accumulate(profile)  # monotone for the interpolation
+        x = np.arange(profile.size)
+        return np.interp(0.9, profile, x) - np.interp(0.1, profile, x)
+
+    viewer = make_napari_viewer()
+    near, _ = (viewer.add_layer(Layer.create(*t)) for t in samples.make_sample_edges())
+    save_psf(PSFModel(**samples.EDGE_TRUTH), tmp_path / "psf.json")
+    widget = DeconvolutionWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    widget._image.value = near
+    widget._psf_file.value = tmp_path / "psf.json"
+    widget._sod.value = near.metadata["source_to_object_mm"]
+    widget._sdd.value = near.metadata["source_to_detector_mm"]
+    assert widget._method.value == "adaptive"
+    wait_for_worker(widget.run())
+    before, after = rise_px(near.data), rise_px(viewer.layers["edge SOD 500 mm deconvolved"].data)
+    assert before > 10.0 and after < 0.5 * before
