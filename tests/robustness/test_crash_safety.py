@@ -236,3 +236,32 @@ def _numbers(value):
             yield from _numbers(v)
     elif isinstance(value, (int, float)) and not isinstance(value, bool):
         yield float(value)
+
+
+def test_rerun_completes_a_batch_killed_between_an_image_and_its_sidecar(batch, tmp_path, capsys):
+    """The kill test's random timing hits this state only sometimes; build it on purpose."""
+    out = tmp_path / "out"
+    assert cli.main(["run", str(batch / "frame_02.tif"), "-o", str(out)]) == 0
+    sidecar = out / "frame_02_dslrxr.png.json"
+    sidecar.unlink()  # what a SIGKILL after the PNG's rename and before its sidecar leaves
+    assert cli.main(["run", str(batch / "frame_02.tif"), "-o", str(out)]) == 0
+    capsys.readouterr()
+    if not sidecar.exists():
+        pytest.xfail("known gap: 'dslrxr run' skips an input whose images exist even when a sidecar "
+                     "is missing (_cli/pipeline.py, developer B)")
+    assert_nothing_partial(out)
+
+
+def test_denoise_gives_identical_bytes_on_every_run(batch, tmp_path, capsys):
+    import typer.main
+
+    if "denoise" not in typer.main.get_command(cli.app).commands:
+        pytest.skip("'dslrxr denoise' (developer A) has not landed")
+    outputs = []
+    for run in ("a", "b"):
+        (tmp_path / run).mkdir()
+        code = cli.main(["denoise", str(batch / "frame_03.tif"), "-o", str(tmp_path / run / "clean.tif"),
+                         "--mask-out", str(tmp_path / run / "mask.tif")])
+        assert code == 0, capsys.readouterr().err
+        outputs.append({p.name: p.read_bytes() for p in (tmp_path / run).glob("*.tif")})
+    assert set(outputs[0]) == {"clean.tif", "mask.tif"} and outputs[0] == outputs[1]

@@ -94,11 +94,19 @@ def command_line(draw, files: dict[str, Path], out_dir: Path) -> list[str]:
     return argv
 
 
+#: Internal errors already reported to their owners, each with its own xfail test here:
+#: (command, phrase of the one-line message). They are counted, not failed.
+KNOWN_INTERNAL_ERRORS = [("simulate", "expected non-negative integer")]
+
+
 def _run_in_process(argv: list[str], capsys) -> tuple[int, str]:
     code = cli.main(argv)
     _, err = capsys.readouterr()
+    if code == cli.EXIT_INTERNAL and any(argv[0] == c and phrase in err for c, phrase in KNOWN_INTERNAL_ERRORS):
+        return code, err
     if code == cli.EXIT_INTERNAL or "Traceback" in err:
-        raise AssertionError(f"dslrxr {' '.join(argv)[:300]} -> exit {code}: {err.strip()[-400:]}")
+        last = err.strip().splitlines()[-1] if err.strip() else ""
+        raise AssertionError(f"exit {code}: {last[:300]} [from dslrxr {' '.join(argv)[:300]}]")
     assert code in (cli.EXIT_OK, cli.EXIT_SOME_FAILED, cli.EXIT_USAGE, cli.EXIT_INTERRUPTED), code
     if code == cli.EXIT_USAGE:
         assert err.strip().splitlines()[-1].startswith("dslrxr: error: "), err
@@ -112,11 +120,19 @@ def test_fuzz_command_line(file_pool, tmp_path, capsys, data):
     out_dir.mkdir(exist_ok=True)
     before = {n: p.read_bytes() for n, p in file_pool.items() if p.is_file()}
     argv = data.draw(command_line(file_pool, out_dir))
-    result = check_outcome("command-line", lambda: _run_in_process(argv, capsys), success_kind=None)
-    if result is not None:
-        FUZZ_LOG[("command-line", f"exit {result[0]}")] += 1
-    after = {n: p.read_bytes() for n, p in file_pool.items() if p.is_file()}
-    assert after == before, "an input file was modified"
+    outputs = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("-o", "--out", "--output")}
+    inputs = {n for n, p in file_pool.items() if str(p) in argv and str(p) not in outputs}
+    try:
+        result = check_outcome("command-line", lambda: _run_in_process(argv, capsys), success_kind=None)
+        if result is not None:
+            known = result[0] == cli.EXIT_INTERNAL
+            FUZZ_LOG[("command-line", "known issue" if known else f"exit {result[0]}")] += 1
+        changed = {n for n, p in file_pool.items() if p.is_file() and n in before and p.read_bytes() != before[n]}
+        assert not changed & inputs, f"input file(s) {sorted(changed & inputs)} modified by {argv}"
+    finally:  # an existing file named as the output may rightly be replaced: restore the pool
+        for n, content in before.items():
+            if not file_pool[n].is_file() or file_pool[n].read_bytes() != content:
+                file_pool[n].write_bytes(content)
 
 
 @pytest.mark.parametrize("name", ["truncated.tif", "text.tif", "cut.dng", "stripped"])
@@ -134,3 +150,13 @@ def test_real_process_prints_one_line_and_no_traceback(file_pool, tmp_path, name
     assert errors and all(str(path) in line or "failed" in line for line in errors), proc.stderr
     assert not [line for line in proc.stderr.splitlines() if "Unexpected end" in line and "error" not in line]
     assert not any(p.suffix in (".tif", ".png") for p in (tmp_path / "o").glob("*")), "partial output"
+
+
+@pytest.mark.skipif("simulate" not in _COMMANDS, reason="'dslrxr simulate' (developer D) has not landed")
+def test_negative_seed_is_a_one_line_error(file_pool, tmp_path, capsys):
+    """Found by fuzzing the command line: ``--seed -1`` ended in an internal error (exit 3)."""
+    code = cli.main(["simulate", str(file_pool["scene.toml"]), "-o", str(tmp_path / "sim.tif"), "--seed", "-1"])
+    err = capsys.readouterr().err
+    if code == cli.EXIT_INTERNAL:
+        pytest.xfail(f"known gap in _cli/simulate.py (developer D): {err.strip()}")
+    assert code == cli.EXIT_USAGE and err.startswith("dslrxr: error: ") and "seed" in err

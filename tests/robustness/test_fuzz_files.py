@@ -225,3 +225,20 @@ def test_fuzz_psf_structure(tmp_path, data):
 def test_fuzz_psf_bytes(tmp_path, data):
     text = json.dumps(_valid_psf_record(tmp_path), indent=2)
     _check_psf(tmp_path, data.draw(mutated_text(text)))
+
+
+def test_scene_with_an_infinite_integer_is_a_one_line_error(tmp_path):
+    """Found by fuzzing: ``supersample = inf`` raised OverflowError instead of a ParameterError."""
+    from napari_dslrxr.core.errors import DslrxrError
+
+    tifffile.imwrite(tmp_path / "thickness.tif", np.full((32, 32), 2.0, np.float32))
+    path = tmp_path / "scene.toml"
+    path.write_text(tomli_w.dumps({**_SCENE, "object": {**_SCENE["object"], "supersample": float("inf")}}))
+    try:
+        _simulator().load_scene(path)
+    except DslrxrError as exc:
+        assert "supersample" in str(exc)
+    except OverflowError as exc:
+        pytest.xfail(f"known gap in core/simulator.py _get (developer D): OverflowError {exc}")
+    else:
+        raise AssertionError("an infinite supersampling factor was accepted")
