@@ -30,6 +30,7 @@ import secrets
 import sys
 import tempfile
 import threading
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from glob import escape as glob_escape
@@ -53,7 +54,6 @@ MIN_SIDE_PX = 8
 #: Default limit on decoded pixels (per plane); override with DSLRXR_MAX_PIXELS or max_pixels=.
 DEFAULT_MAX_PIXELS = 120_000_000
 
-_SUPPORTED_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 _CFA_NAMES = ("R", "G1", "G2", "B")
 
 
@@ -235,8 +235,7 @@ def _quiet_decoder():
     """
     captured: list[str] = []
     with _QUIET_LOCK:
-        outermost = _QUIET_STATE["depth"] == 0
-        if outermost:
+        if _QUIET_STATE["depth"] == 0:
             _QUIET_STATE["stream"] = _stdio.StringIO()
             _QUIET_STATE["sys_stderr"] = sys.stderr
             _QUIET_STATE["saved_fd"] = None
@@ -246,15 +245,20 @@ def _quiet_decoder():
                 pass
             try:
                 _QUIET_STATE["tmp"] = tempfile.TemporaryFile()
-                _QUIET_STATE["saved_fd"] = os.dup(2)
-                os.dup2(_QUIET_STATE["tmp"].fileno(), 2)
+                saved = os.dup(2)
+                try:
+                    os.dup2(_QUIET_STATE["tmp"].fileno(), 2)
+                except OSError:
+                    os.close(saved)
+                    raise
+                _QUIET_STATE["saved_fd"] = saved
             except OSError:  # no fd 2 (e.g. a GUI without a console): nothing to hide
-                _QUIET_STATE["saved_fd"] = None
+                if _QUIET_STATE.get("tmp") is not None:
+                    _QUIET_STATE["tmp"].close()
+                _QUIET_STATE["tmp"] = None
             sys.stderr = _QUIET_STATE["stream"]
         _QUIET_STATE["depth"] += 1
     try:
-        import warnings
-
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             yield captured
