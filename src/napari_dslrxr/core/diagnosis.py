@@ -421,6 +421,25 @@ class _Problem:
         m = self.mask if sel is None else sel
         return ((self.y - mu) * self.wsqrt)[m]
 
+    def jacobian(self, layout: _Layout, x: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+        """Jacobian of the whitened residual: analytic for offset and gain, else forward differences."""
+        m = self.mask if sel is None else sel
+        base, terms = layout.unpack(x)
+        mu = self.model.expected(base, terms)
+        f0 = ((self.y - mu) * self.wsqrt)[m]
+        jac = np.empty((f0.size, x.size))
+        for j, (owner, key) in enumerate(layout.names):
+            if owner == "base" and key == "offset_dn":
+                jac[:, j] = -self.wsqrt[m]
+            elif owner == "base" and key == "gain_dn":
+                jac[:, j] = -((mu - base["offset_dn"]) / base["gain_dn"] * self.wsqrt)[m]
+            else:
+                h = layout.steps[j] if x[j] + layout.steps[j] <= layout.upper[j] else -layout.steps[j]
+                xj = x.copy()
+                xj[j] += h
+                jac[:, j] = (self.whitened(layout, xj, sel) - f0) / h
+        return jac
+
     def fit(self, layout: _Layout, x0: np.ndarray, sel: np.ndarray | None = None, max_nfev: int = 60):
         from scipy.optimize import least_squares
 
@@ -430,7 +449,7 @@ class _Problem:
             return self.whitened(layout, x, sel)
 
         def jac(x):
-            return -_jacobian(lambda xx: -fun(xx), x, -fun(x), layout.steps, layout.lower, layout.upper)
+            return self.jacobian(layout, x, sel)
 
         res = least_squares(fun, x0, jac=jac, bounds=(layout.lower, layout.upper), x_scale="jac",
                             method="trf", max_nfev=max_nfev, xtol=1e-8, ftol=1e-9, gtol=1e-8)
@@ -446,12 +465,16 @@ def _covariance(jac: np.ndarray) -> np.ndarray:
 
 
 def _orthonormal(columns: np.ndarray, reference_norm: float, rel_tol: float = 1e-4) -> np.ndarray:
-    """Orthonormal basis of the column space, dropping directions below ``rel_tol`` of the norm."""
+    """Orthonormal basis of the column space, dropping directions below ``rel_tol`` of the norm.
+
+    QR of the tall matrix, then an SVD of the small triangular factor (cheap for n >> d).
+    """
     if columns.shape[1] == 0:
         return columns
-    u, s, _ = np.linalg.svd(columns, full_matrices=False)
+    q, r = np.linalg.qr(columns, mode="reduced")
+    u, s, _ = np.linalg.svd(r)
     keep = s > rel_tol * max(reference_norm, 1e-300)
-    return u[:, keep]
+    return q @ u[:, keep]
 
 
 def _candidate_columns(problem: _Problem, layout: _Layout, x: np.ndarray, term: PhysicsTerm,
@@ -460,16 +483,17 @@ def _candidate_columns(problem: _Problem, layout: _Layout, x: np.ndarray, term: 
     base, terms = layout.unpack(x)
     probe = term.probe_params()
     probe.update(grid_point)
+    f_probe = problem.model.expected(base, terms + [(term, probe)])
     cols = []
     for spec in term.params:
         if spec.is_grid:
             continue
-        plus, minus = dict(probe), dict(probe)
-        plus[spec.name] += spec.step
-        minus[spec.name] -= spec.step
+        plus = dict(probe)
+        # forward difference, stepping inside the prior range
+        h = spec.step if probe[spec.name] + spec.step <= spec.prior[1] else -spec.step
+        plus[spec.name] += h
         f_plus = problem.model.expected(base, terms + [(term, plus)])
-        f_minus = problem.model.expected(base, terms + [(term, minus)])
-        cols.append(((f_plus - f_minus) / (2 * spec.step) * problem.wsqrt)[problem.mask])
+        cols.append(((f_plus - f_probe) / h * problem.wsqrt)[problem.mask])
     return np.stack(cols, axis=1)
 
 
@@ -484,15 +508,21 @@ def _rank(problem: _Problem, layout: _Layout, x: np.ndarray, jac0: np.ndarray, z
         for gp in term.grid_points():
             cols = _candidate_columns(problem, layout, x, term, gp)
             perp = cols - q0 @ (q0.T @ cols)
-            qb = _orthonormal(perp, np.linalg.norm(cols, axis=0).max())
-            if qb.shape[1] == 0:
+            # S = gᵀ G⁺ g with G = B⊥ᵀB⊥, g = B⊥ᵀz (small d×d problem; directions whose
+            # projected norm is below 1e-4 of the raw column norm are not identifiable)
+            gram = perp.T @ perp
+            grad = perp.T @ z
+            evals, evecs = np.linalg.eigh(gram)
+            ref = float(np.linalg.norm(cols, axis=0).max())
+            keep = evals > (1e-4 * ref) ** 2
+            if not keep.any():
                 continue
-            proj = qb.T @ z
-            score = float(proj @ proj)
+            proj = evecs[:, keep].T @ grad
+            score = float(np.sum(proj**2 / evals[keep]))
             if best is None or score > best["score"]:
-                coef, *_ = np.linalg.lstsq(perp, z, rcond=None)
-                best = {"effect": term.name, "score": score, "dof": int(qb.shape[1]),
-                        "grid": dict(gp), "one_step": [float(c) for c in coef], "_basis": qb}
+                coef = evecs[:, keep] @ (proj / evals[keep])
+                best = {"effect": term.name, "score": score, "dof": int(keep.sum()),
+                        "grid": dict(gp), "one_step": [float(c) for c in coef], "_perp": perp}
         if best is None:
             continue
         k = len(term.params)
@@ -639,7 +669,7 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
     if outliers.any():
         problem.mask = mask = mask & ~outliers
         problem.n = int(mask.sum())
-    x, chi2, jac = problem.fit(layout, x, max_nfev=opts.max_nfev)
+    x, chi2, jac = problem.fit(layout, x, max_nfev=opts.max_nfev if outliers.any() else 5)
     say(f"base fit chi2/dof {chi2 / (problem.n - len(x)):.4f}")
 
     n = problem.n
@@ -668,7 +698,7 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
     while len(added) < opts.max_terms and remaining:
         z = ((y - model.expected(*layout.unpack(x))) * problem.wsqrt)[mask]
         ranking = _rank(problem, layout, x, jac_now, z, remaining)
-        rankings.append([{k: v for k, v in r.items() if k != "_basis"} for r in ranking])
+        rankings.append([{k: v for k, v in r.items() if k != "_perp"} for r in ranking])
         say("ranking: " + ", ".join(f"{r['effect']} S={r['score']:.1f}" for r in ranking[:3]))
         accepted = False
         for cand in ranking[:opts.tries_per_round]:
@@ -693,8 +723,8 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
                 say(f"{term.name}: ΔBIC {delta_bic:.1f} — not accepted")
                 continue
             # Held-out blocks: fit both models on the training blocks, compare on the others.
-            x_cur_tr, _, _ = problem.fit(layout, x, sel=train, max_nfev=20)
-            x_ext_tr, _, _ = problem.fit(new_layout, x_ext, sel=train, max_nfev=20)
+            x_cur_tr, _, _ = problem.fit(layout, x, sel=train, max_nfev=10)
+            x_ext_tr, _, _ = problem.fit(new_layout, x_ext, sel=train, max_nfev=10)
             chi_cur_te = float(np.sum(problem.whitened(layout, x_cur_tr, test) ** 2))
             chi_ext_te = float(np.sum(problem.whitened(new_layout, x_ext_tr, test) ** 2))
             gain = chi_cur_te - chi_ext_te
@@ -708,10 +738,12 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
                 if owner == term.name:
                     params[key], unc[key] = term.spec(key).wrap(float(x_ext[i])), float(se[i])
             confusable = []
-            for other in ranking:
+            basis = _orthonormal(cand["_perp"], np.linalg.norm(cand["_perp"], axis=0).max())
+            for other in ranking[:6]:
                 if other["effect"] == term.name:
                     continue
-                sv = np.linalg.svd(cand["_basis"].T @ other["_basis"], compute_uv=False)
+                other_basis = _orthonormal(other["_perp"], np.linalg.norm(other["_perp"], axis=0).max())
+                sv = np.linalg.svd(basis.T @ other_basis, compute_uv=False)
                 if sv.size and sv.max() > opts.confusable_correlation:
                     confusable.append((other["effect"], float(sv.max())))
             added.append(AddedTerm(term.name, params, unc, float(delta_bic),

@@ -108,6 +108,8 @@ class ChainGrid:
     x: np.ndarray = field(init=False, repr=False)
     y: np.ndarray = field(init=False, repr=False)
     half_size_px: float = field(init=False)
+    _f2: np.ndarray = field(init=False, repr=False)
+    _cache: dict = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         from scipy import fft as sfft
@@ -125,9 +127,21 @@ class ChainGrid:
         self.y = ((np.arange(h) - (h - 1) / 2.0) / self.half_size_px)[:, None]
         self.x = ((np.arange(w) - (w - 1) / 2.0) / self.half_size_px)[None, :]
 
+        self._f2 = self.fx**2 + self.fy**2
+        self._cache: dict = {}
+
     @property
     def f2(self) -> np.ndarray:
-        return self.fx**2 + self.fy**2
+        """Squared spatial frequency (cycles/px)² on the padded rfft grid."""
+        return self._f2
+
+    def cached(self, key, make):
+        """Small per-grid cache of transfer functions (kernel FFTs reused across Jacobian columns)."""
+        if key not in self._cache:
+            if len(self._cache) > 64:
+                self._cache.clear()
+            self._cache[key] = make()
+        return self._cache[key]
 
 
 @dataclass
@@ -247,19 +261,33 @@ def _apply_inverse_square(state: ChainState, p: dict) -> None:
 
 
 def _gauss_transfer(grid: ChainGrid, sigma_px: float) -> np.ndarray:
-    return np.exp(-2.0 * np.pi**2 * sigma_px**2 * grid.f2)
+    c = -2.0 * np.pi**2 * sigma_px**2
+    # separable: exp(c fy^2) exp(c fx^2) as an outer product (cheaper than exp on the grid)
+    return np.exp(c * grid.fy**2) * np.exp(c * grid.fx**2)
 
 
-def _fft_filter(image: np.ndarray, transfer: np.ndarray, grid: ChainGrid) -> np.ndarray:
-    """Filter ``image`` with an rfft2 transfer function on the reflect-padded grid."""
+def _padded_spectrum(image: np.ndarray, grid: ChainGrid) -> np.ndarray:
+    """rfft2 of ``image`` reflect-padded to ``grid.padded_shape``."""
     from scipy import fft as sfft
 
     ph, pw = grid.pad
     nh, nw = grid.padded_shape
     h, w = image.shape
-    padded = np.pad(image, ((ph, nh - h - ph), (pw, nw - w - pw)), mode="reflect")
-    out = sfft.irfft2(sfft.rfft2(padded) * transfer, s=(nh, nw))
-    return out[ph:ph + h, pw:pw + w]
+    return sfft.rfft2(np.pad(image, ((ph, nh - h - ph), (pw, nw - w - pw)), mode="reflect"))
+
+
+def _inverse_spectrum(spectrum: np.ndarray, grid: ChainGrid) -> np.ndarray:
+    """Inverse of :func:`_padded_spectrum` (cropped to ``grid.shape``)."""
+    from scipy import fft as sfft
+
+    ph, pw = grid.pad
+    h, w = grid.shape
+    return sfft.irfft2(spectrum, s=grid.padded_shape)[ph:ph + h, pw:pw + w]
+
+
+def _fft_filter(image: np.ndarray, transfer: np.ndarray, grid: ChainGrid) -> np.ndarray:
+    """Filter ``image`` with an rfft2 transfer function on the reflect-padded grid."""
+    return _inverse_spectrum(_padded_spectrum(image, grid) * transfer, grid)
 
 
 def _apply_scatter(state: ChainState, p: dict) -> None:
@@ -283,7 +311,7 @@ def _apply_veiling_glare(state: ChainState, p: dict) -> None:
     g = state.grid
     w_px = _px(g, p["range_mm"])
     # PSF = (1 - eta) δ + eta K_w, K_w = exp(-r/w)/(2 pi w^2): MTF (1 + (2 pi w f)^2)^(-3/2).
-    mtf_tail = (1.0 + (2.0 * np.pi * w_px) ** 2 * g.f2) ** -1.5
+    mtf_tail = g.cached(("glare", w_px), lambda: (1.0 + (2.0 * np.pi * w_px) ** 2 * g.f2) ** -1.5)
     state.transfer = state.transfer * ((1.0 - p["eta"]) + p["eta"] * mtf_tail)
 
 
@@ -291,9 +319,11 @@ def _apply_mirror_ghost(state: ChainState, p: dict) -> None:
     g = state.grid
     a = np.deg2rad(p["axis_deg"])
     d_px = _px(g, p["shift_mm"])
-    phase = 2.0 * np.pi * d_px * (g.fx * np.cos(a) + g.fy * np.sin(a))
     # O = L(q) + eps L(q + d): front-face reflection of a back-silvered mirror (notes §3.5).
-    state.transfer = state.transfer * (1.0 + p["epsilon"] * np.exp(1j * phase))
+    # The shift's phase factor is separable in fy and fx.
+    shift = g.cached(("shift", d_px, p["axis_deg"]), lambda: (
+        np.exp(2j * np.pi * d_px * np.sin(a) * g.fy) * np.exp(2j * np.pi * d_px * np.cos(a) * g.fx)))
+    state.transfer = state.transfer * (1.0 + p["epsilon"] * shift)
 
 
 def _apply_lens_distortion(state: ChainState, p: dict) -> None:

@@ -46,11 +46,12 @@ def residual_maps_figure(result: DiagnosisResult, scale: int = 4, title: str = "
     before = multiscale_maps(result.z_base, result.mask, (scale,))[scale]
     after = multiscale_maps(result.z_final, result.mask, (scale,))[scale]
     lim = max(3.0, float(np.percentile(np.abs(before), 99.5)))
-    fig = Figure(figsize=(9.0, 4.2))
-    axes = fig.subplots(1, 2)
+    fig = Figure(figsize=(13.0, 4.4))
+    axes = fig.subplots(1, 3)
     names = ", ".join(a.effect for a in result.added) or "nothing added"
     for ax, img, label in ((axes[0], before, f"base model  χ²/dof {result.base_chi2_per_dof:.4f}"),
-                           (axes[1], after, f"+ {names}  χ²/dof {result.final_chi2_per_dof:.4f}")):
+                           (axes[1], after, f"+ {names}  χ²/dof {result.final_chi2_per_dof:.4f}"),
+                           (axes[2], before - after, "explained by the added terms (before − after)")):
         im = ax.imshow(img, cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
         ax.set_title(label, fontsize=9)
         ax.set_xticks([]), ax.set_yticks([])

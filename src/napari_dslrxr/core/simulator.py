@@ -54,8 +54,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError, ParameterError
-from .physics_terms import LIBRARY, ChainGrid, ChainState, PhysicsTerm, _fft_filter, _gauss_transfer, \
-    get_term, validate_params
+from .physics_terms import LIBRARY, ChainGrid, ChainState, PhysicsTerm, _gauss_transfer, \
+    _inverse_spectrum, _padded_spectrum, get_term, validate_params
 
 # Mass attenuation coefficients mu/rho (cm^2/g, with coherent scattering) at 20..100 keV, from the
 # NIST XCOM / Hubbell & Seltzer tables (NISTIR 5632), rounded; densities in g/cm^3.
@@ -299,6 +299,8 @@ class ChainModel:
         self.thickness_mm = np.asarray(thickness_mm, dtype=np.float64)
         self.grid = grid
         self._path_cache: tuple | None = None
+        self._spectrum_cache: tuple | None = None
+        self._light_cache: tuple | None = None
 
     def _transmission(self, mu: float, path_terms: list[tuple[PhysicsTerm, dict]]):
         key = (mu, tuple((t.name, tuple(sorted(p.items()))) for t, p in path_terms))
@@ -329,20 +331,39 @@ class ChainModel:
         by_stage: dict[str, list] = {}
         for term, params in terms:
             by_stage.setdefault(term.stage, []).append((term, params))
-        transmission, t_times_p = self._transmission(float(base["mu_per_mm"]), by_stage.get("path", []))
-        state = ChainState(g, transmission=transmission, scatter_source=t_times_p,
-                           fluence=np.ones(g.shape))
-        for term, params in by_stage.get("fluence", []):
-            term.apply(state, params)
-        state.signal = state.fluence * transmission
-        for term, params in by_stage.get("primary", []):
-            term.apply(state, params)
+        def stage_key(stages):
+            return tuple((t.name, tuple(sorted(p.items()))) for st in stages for t, p in by_stage.get(st, []))
+
+        # Caches: the spectrum of the screen input (reused when only PSF, optics or camera
+        # parameters change) and the light image after the PSF (reused when only optics/camera
+        # parameters change) — the bulk of the Jacobian columns.
+        signal_key = (float(base["mu_per_mm"]), stage_key(("path", "fluence", "primary")))
         sigma_px = np.hypot(base["focal_spot_sigma_mm"] * g.magnification_minus_one,
                             base["detector_sigma_mm"]) / g.pitch_mm
-        state.transfer = _gauss_transfer(g, sigma_px)
-        for term, params in by_stage.get("psf", []):
-            term.apply(state, params)
-        state.light = _fft_filter(state.signal, state.transfer, g)
+        light_key = (signal_key, float(sigma_px), stage_key(("psf",)))
+        state = ChainState(g)
+        if self._light_cache is not None and self._light_cache[0] == light_key:
+            state.light = self._light_cache[1]
+        else:
+            if self._spectrum_cache is not None and self._spectrum_cache[0] == signal_key:
+                spectrum = self._spectrum_cache[1]
+            else:
+                transmission, t_times_p = self._transmission(float(base["mu_per_mm"]), by_stage.get("path", []))
+                state = ChainState(g, transmission=transmission, scatter_source=t_times_p,
+                                   fluence=np.ones(g.shape))
+                for term, params in by_stage.get("fluence", []):
+                    term.apply(state, params)
+                state.signal = state.fluence * transmission
+                for term, params in by_stage.get("primary", []):
+                    term.apply(state, params)
+                spectrum = _padded_spectrum(state.signal, g)
+                self._spectrum_cache = (signal_key, spectrum)
+            state.transfer = _gauss_transfer(g, sigma_px)
+            for term, params in by_stage.get("psf", []):
+                term.apply(state, params)
+            state.light = _inverse_spectrum(spectrum * state.transfer, g)
+            self._light_cache = (light_key, state.light)
+        state.light = state.light.copy()
         for stage in ("optics", "camera"):
             for term, params in by_stage.get(stage, []):
                 term.apply(state, params)
