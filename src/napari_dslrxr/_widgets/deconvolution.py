@@ -63,6 +63,13 @@ class DeconvolutionWidget(Container):
                                    label="regularisation",
                                    tooltip="gradient prior precision relative to the noise; larger = smoother")
         self._reg.value = 100.0  # after the positions are set, or the value is misplaced
+        # magicgui's log-slider read-out shows the slider position, not the value: hide it
+        # and show the value in the label instead.
+        hide_readout = getattr(self._reg._widget, "_mgui_set_readout_visibility", None)
+        if hide_readout is not None:
+            hide_readout(False)
+        self._reg.changed.connect(self._label_reg)
+        self._label_reg()
         self._auto = PushButton(text="Estimate regularisation")
         self._live = CheckBox(value=False, label="live preview (visible region)")
         self._apply = PushButton(text="Apply to the whole image")
@@ -85,6 +92,9 @@ class DeconvolutionWidget(Container):
         camera.events.center.connect(self._trigger_preview)
         camera.events.zoom.connect(self._trigger_preview)
         register_stage_widget(viewer, self)
+
+    def _label_reg(self, *_args) -> None:
+        self._reg.label = f"regularisation {float(self._reg.value):.3g}"
 
     # -- parameters (TOML section [deblur]) -----------------------------------------------------
     def get_params(self) -> DeconvolutionParams:
