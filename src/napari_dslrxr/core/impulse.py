@@ -125,7 +125,7 @@ class ImpulseParams:
     posterior_threshold: float = 0.5
     min_saturation: float = 0.05
     min_value_fraction: float = 0.02
-    em_samples: int = 1_000_000
+    em_samples: int = 250_000
     em_iterations: int = 30
 
     def __post_init__(self) -> None:
@@ -210,41 +210,80 @@ class ImpulseResult:
 # --------------------------------------------------------------------------- building blocks
 
 
-def _median_blur(x: np.ndarray, size_px: int) -> np.ndarray:
-    """Detection median of a float32 image including the centre, replicated border (fast).
+@dataclass
+class _Component:
+    """A polyphase component of a channel (rows r0::step, cols c0::step) and its 3x3 median."""
 
-    ``size_px`` 3: the 3x3 median. 5: the *sparse* 5x5 median, over the centre and the
-    eight pixels two steps away (rows and columns -2, 0, +2): a patch of up to 3x3 px around
-    the centre holds only one of its nine samples, so the median stays on the background,
-    and it costs the same as a 3x3 median (one per polyphase component).
+    r0: int
+    c0: int
+    step: int
+    values: np.ndarray
+    median: np.ndarray
+
+    def to_flat(self, flat_in_component: np.ndarray, width: int) -> np.ndarray:
+        """Flat indices in the full image of flat indices in this component."""
+        rows, cols = np.divmod(flat_in_component, self.values.shape[1])
+        return (self.r0 + self.step * rows) * width + (self.c0 + self.step * cols)
+
+
+def _detection_components(x: np.ndarray, size_px: int) -> list[_Component]:
+    """The components the fast detection median works on, each with its median (float32).
+
+    ``size_px`` 3: the whole image and its 3x3 median. 5: the *sparse* 5x5 median over the
+    centre and the eight pixels two steps away (rows and columns -2, 0, +2), computed as the
+    3x3 median of each of the four polyphase components: a patch of up to 3x3 px around the
+    centre holds only one of its nine samples, so the median stays on the background, at the
+    cost of one 3x3 median. Both include the centre (cv2.medianBlur), replicated border.
     """
     import cv2
 
-    x = np.ascontiguousarray(x, dtype=_FLOAT)
     if size_px == 3:
-        return cv2.medianBlur(x, 3)
-    out = np.empty_like(x)
-    for r in (0, 1):
-        for c in (0, 1):
-            out[r::2, c::2] = cv2.medianBlur(np.ascontiguousarray(x[r::2, c::2]), 3)
-    return out
+        values = np.ascontiguousarray(x, dtype=_FLOAT)
+        return [_Component(0, 0, 1, values, cv2.medianBlur(values, 3))]
+    components = []
+    for r0 in (0, 1):
+        for c0 in (0, 1):
+            values = np.ascontiguousarray(x[r0::2, c0::2], dtype=_FLOAT)
+            components.append(_Component(r0, c0, 2, values, cv2.medianBlur(values, 3)))
+    return components
+
+
+#: Batcher's odd-even merge sort of 8 values (19 compare-exchanges), used column-wise.
+_SORT8_NETWORK = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (1, 2), (5, 6),
+                  (0, 4), (3, 7), (1, 5), (2, 6), (1, 4), (3, 6), (2, 4), (3, 5), (3, 4))
 
 
 def _ring_median_at(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int) -> np.ndarray:
     """Median of the 8 detection samples around each pixel, centre excluded (float64).
 
-    The samples are those of :func:`_median_blur` without the centre: the 8 neighbours
-    (``size_px`` 3) or the 8 pixels two steps away (5). Borders are replicated.
+    The samples are those of :func:`_detection_components` without the centre: the 8 neighbours
+    (``size_px`` 3) or the 8 pixels two steps away (5). Borders are replicated. The median
+    of 8 is the mean of the 4th and 5th values, found by a sorting network over the columns.
     """
-    h, w = x.shape
     step = 1 if size_px == 3 else 2
     dr = np.array([-step, -step, -step, 0, 0, step, step, step])
     dc = np.array([-step, 0, step, -step, step, -step, 0, step])
-    rr = np.clip(rows[:, None] + dr[None, :], 0, h - 1)
-    cc = np.clip(cols[:, None] + dc[None, :], 0, w - 1)
-    vals = np.ascontiguousarray(x).ravel()[rr * w + cc]
-    vals.sort(axis=1)
-    return 0.5 * (vals[:, 3].astype(np.float64) + vals[:, 4])
+    flat = _flat_indices(rows, cols, dr, dc, x.shape)
+    x_flat = np.ascontiguousarray(x).ravel()
+    v = [x_flat[flat[:, k]] for k in range(8)]
+    for i, j in _SORT8_NETWORK:
+        low = np.minimum(v[i], v[j])
+        v[j] = np.maximum(v[i], v[j])
+        v[i] = low
+    return 0.5 * (v[3].astype(np.float64) + v[4])
+
+
+def _flat_indices(rows: np.ndarray, cols: np.ndarray, dr: np.ndarray, dc: np.ndarray, shape) -> np.ndarray:
+    """Flat indices of pixels (rows + dr, cols + dc), shape (N, K), borders replicated."""
+    h, w = shape
+    reach = int(max(np.abs(dr).max(), np.abs(dc).max()))
+    flat = (rows.astype(np.intp) * w + cols)[:, None] + (dr * w + dc)[None, :]
+    near_border = (rows < reach) | (rows >= h - reach) | (cols < reach) | (cols >= w - reach)
+    if near_border.any():
+        rr = np.clip(rows[near_border, None] + dr[None, :], 0, h - 1)
+        cc = np.clip(cols[near_border, None] + dc[None, :], 0, w - 1)
+        flat[near_border] = rr * w + cc
+    return flat
 
 
 def _window_offsets(size_px: int) -> tuple[np.ndarray, np.ndarray]:
@@ -255,17 +294,8 @@ def _window_offsets(size_px: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _window_flat_indices(rows: np.ndarray, cols: np.ndarray, size_px: int, shape) -> np.ndarray:
     """Flat indices of the ``size_px`` x ``size_px`` window around each pixel (border replicated)."""
-    h, w = shape
-    radius = size_px // 2
     dr, dc = _window_offsets(size_px)
-    base = rows.astype(np.intp) * w + cols
-    flat = base[:, None] + (dr * w + dc)[None, :]
-    near_border = (rows < radius) | (rows >= h - radius) | (cols < radius) | (cols >= w - radius)
-    if near_border.any():
-        rr = np.clip(rows[near_border, None] + dr[None, :], 0, h - 1)
-        cc = np.clip(cols[near_border, None] + dc[None, :], 0, w - 1)
-        flat[near_border] = rr * w + cc
-    return flat
+    return _flat_indices(rows, cols, dr, dc, shape)
 
 
 def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, cols: np.ndarray,
@@ -288,7 +318,7 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
             continue
         flat = _window_flat_indices(rows[todo], cols[todo], size, x.shape)
         vals = x_flat[flat].astype(_FLOAT, copy=False)
-        bad = excluded_flat[flat]
+        bad = excluded_flat[flat] != 0
         good_count = size * size - np.count_nonzero(bad, axis=1)
         vals[bad] = np.inf
         vals.sort(axis=1)
@@ -318,6 +348,12 @@ class _NoiseModel:
     def variance(self, m: np.ndarray) -> np.ndarray:
         return np.maximum(self.a * m + self.b, self.var_floor)
 
+    def log_odds_constant(self, posterior_threshold: float, rate: float) -> float:
+        """2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi): the threshold is s^2 (this - ln s^2)."""
+        return (2.0 * math.log((1.0 - rate) / (rate * self.pulse_density))
+                + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
+                - math.log(2.0 * math.pi))
+
     def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float,
                  prior: float | None = None) -> np.ndarray:
         """Posterior pulse probability > threshold, vectorised (float32 inputs allowed).
@@ -326,10 +362,7 @@ class _NoiseModel:
         with ``P`` the fitted pulse rate unless a ``prior`` is given.
         """
         s2 = self.variance(m)
-        rate = self.pulse_rate if prior is None else prior
-        const = (2.0 * math.log((1.0 - rate) / (rate * self.pulse_density))
-                 + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
-                 - math.log(2.0 * math.pi))
+        const = self.log_odds_constant(posterior_threshold, self.pulse_rate if prior is None else prior)
         limit = s2 * (const - np.log(s2))
         pulse = (d * d > limit) & (limit > 0) | (limit <= 0)
         if self.bright_only:
@@ -387,33 +420,45 @@ def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, bright_
     return model
 
 
-def _flat_area_sample(m: np.ndarray, valid: np.ndarray | None, count: int,
-                      photon_counting: bool) -> np.ndarray:
+def _median_lookup(components: list[_Component], rows: np.ndarray, cols: np.ndarray, shape) -> np.ndarray:
+    """Fast detection median at full-image (rows, cols), clipped to the image."""
+    h, w = shape
+    rows = np.clip(rows, 0, h - 1)
+    cols = np.clip(cols, 0, w - 1)
+    if len(components) == 1:
+        return components[0].median[rows, cols]
+    out = np.empty(rows.shape, _FLOAT)
+    which = (rows % 2) * 2 + (cols % 2)  # components are ordered (0,0), (0,1), (1,0), (1,1)
+    for k, comp in enumerate(components):
+        sel = which == k
+        out[sel] = comp.median[rows[sel] // 2, cols[sel] // 2]
+    return out
+
+
+def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, count: int,
+                      photon_counting: bool, shape) -> np.ndarray:
     """Flat indices of about ``count`` pixels in the flattest half of the image.
 
     Texture and edges inflate the residual and would bias the noise fit (notes, pitfall
-    (a)); the fit therefore uses pixels whose local slope of the median image is at most
+    (a)); the fit therefore uses pixels whose local slope of the detection median (between
+    the direct neighbours, whose medians use other samples than the pixel's own) is at most
     the median slope, the slope being divided by sqrt(m) for photon-counting channels so
     that bright areas are not excluded just for their larger noise. Regular subsample
     (deterministic).
     """
-    h, w = m.shape
-    if valid is None:
-        candidates = _subsample_indices(h * w, 2 * count)
-    else:
-        flat_valid = np.flatnonzero(valid)
-        candidates = flat_valid[_subsample_indices(flat_valid.size, 2 * count)]
+    h, w = shape
+    candidates = _subsample_indices(h * w, 2 * count)
+    if valid is not None:
+        candidates = candidates[valid.ravel()[candidates]]
     if candidates.size < 32:
         return candidates
     rows, cols = np.divmod(candidates, w)
-    mf = m.ravel()
-    right = rows * w + np.minimum(cols + 1, w - 1)
-    left = rows * w + np.maximum(cols - 1, 0)
-    down = np.minimum(rows + 1, h - 1) * w + cols
-    up = np.maximum(rows - 1, 0) * w + cols
-    slope = np.abs(mf[right] - mf[left]) + np.abs(mf[down] - mf[up])
+    slope = (np.abs(_median_lookup(components, rows, cols + 1, shape)
+                    - _median_lookup(components, rows, cols - 1, shape))
+             + np.abs(_median_lookup(components, rows + 1, cols, shape)
+                      - _median_lookup(components, rows - 1, cols, shape)))
     if photon_counting:
-        slope = slope / np.sqrt(np.abs(mf[candidates]) + 1.0)
+        slope = slope / np.sqrt(np.abs(_median_lookup(components, rows, cols, shape)) + 1.0)
     return candidates[slope <= np.median(slope)]
 
 
@@ -427,51 +472,66 @@ def _subsample_indices(n: int, count: int) -> np.ndarray:
 
 def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_counting: bool,
                    bright_only: bool, valid: np.ndarray | None = None, circular: bool = False,
-                   value_range: float | None = None, residual_weight: np.ndarray | None = None):
-    """Detect and replace pulses in one float32 channel.
+                   value_range: float | None = None, residual_weight: np.ndarray | None = None,
+                   in_place: bool = False):
+    """Detect and replace pulses in one float32 channel (``in_place``: in ``x`` itself).
 
     ``residual_weight`` (constant-variance channels): residuals are multiplied by it before
     the Gaussian model is fitted and applied, so that a channel whose noise is known to
     scale as 1/weight gets a constant variance (H and S: see :func:`_remove_hsv`).
 
+    Only the first pass looks at the whole image. A later pass can only find pulses where
+    the previous one changed a detection median, so it re-tests just the pixels within the
+    detection window of the pixels replaced before (the same result as a full pass).
+
     Returns (cleaned float32 channel, mask, model of the first pass or None). Pulse pixels
     get the median of their non-pulse neighbours; others are untouched.
     """
-    x = np.array(x, dtype=_FLOAT, copy=True)
+    if not (in_place and x.dtype == _FLOAT and x.flags.c_contiguous):
+        x = np.array(x, dtype=_FLOAT, copy=True)
     h, w = x.shape
     mask_total = np.zeros((h, w), bool)
-    first_model = None
     if passes == 0:
         return x, mask_total, None
     if value_range is None:
         value_range = float(x.max() - x.min())
     value_range = max(value_range, 1e-12)
+    components = _detection_components(x, params.window_px)
+    pick = _flat_area_sample(components, valid, params.em_samples, photon_counting, (h, w))
+    if pick.size < 16:
+        return x, mask_total, None
+    d_fit, m_fit = _exact_residual(x, *np.divmod(pick, w), params.window_px, circular, residual_weight)
+    model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, bright_only=bright_only,
+                         value_range=value_range, iterations=params.em_iterations)
+    del d_fit, m_fit, pick
+    if photon_counting:
+        model.min_contrast = float(params.min_contrast)
+    valid_flat = None if valid is None else valid.ravel()
+    scratch = np.zeros((h, w), np.uint8)  # 1: pulse of this pass, 2: ring under test
+    reach = 1 if params.window_px == 3 else 2
+    to_check = None
     for _ in range(passes):
-        if first_model is None:
-            m = _median_blur(x, params.window_px)
-            pick = _flat_area_sample(m, valid, params.em_samples, photon_counting)
-            del m
-            if pick.size < 16:
-                return x, mask_total, None
-            rows, cols = np.divmod(pick, w)
-            d_fit, m_fit = _exact_residual(x, rows, cols, params.window_px, circular, residual_weight)
-            first_model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting,
-                                       bright_only=bright_only, value_range=value_range,
-                                       iterations=params.em_iterations)
-            del d_fit, m_fit, rows, cols, pick
-            if photon_counting:
-                first_model.min_contrast = float(params.min_contrast)
-        model = first_model
-        mask = _detect(x, model, params, valid, circular, residual_weight)
-        mask = _grow_patches(x, mask, model, params, valid, circular, residual_weight)
-        if not mask.any():
+        if to_check is None:
+            candidates = _prefilter(components, model, params, circular, residual_weight, w)
+            del components
+        else:
+            candidates = to_check
+        if valid_flat is not None:
+            candidates = candidates[valid_flat[candidates]]
+        seeds = _exact_test(x, candidates, model, params, circular, residual_weight)
+        pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch)
+        if pulses.size == 0:
             break
-        rows, cols = np.nonzero(mask)
-        repl = _masked_median_at(x, mask, rows, cols)
+        rows, cols = np.divmod(pulses, w)
+        scratch.ravel()[pulses] = 1
+        repl = _masked_median_at(x, scratch, rows, cols)
+        scratch.ravel()[pulses] = 0
         keep = np.isfinite(repl)
-        x[rows[keep], cols[keep]] = repl[keep].astype(_FLOAT)
-        mask_total |= mask
-    return x, mask_total, first_model
+        x.ravel()[pulses[keep]] = repl[keep].astype(_FLOAT)
+        mask_total.ravel()[pulses] = True
+        dr, dc = _window_offsets(2 * reach + 1)
+        to_check = np.unique(_flat_indices(rows, cols, dr, dc, (h, w)))
+    return x, mask_total, model
 
 
 def _exact_residual(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int,
@@ -480,79 +540,113 @@ def _exact_residual(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: 
     med = _ring_median_at(x, rows, cols, size_px)
     d = x[rows, cols].astype(np.float64) - med
     if circular:
-        d = (d + 0.5) % 1.0 - 0.5
+        d -= np.rint(d)  # into [-0.5, 0.5]: the short way round the hue circle
     if residual_weight is not None:
         d *= residual_weight[rows, cols]
     return d, med
 
 
-def _detect(x: np.ndarray, model: _NoiseModel, params: ImpulseParams, valid: np.ndarray | None,
-            circular: bool, residual_weight: np.ndarray | None) -> np.ndarray:
-    """Seed pulse mask of one channel (before patch growth).
+def _prefilter(components: list[_Component], model: _NoiseModel, params: ImpulseParams,
+               circular: bool, residual_weight: np.ndarray | None, width: int) -> np.ndarray:
+    """Flat indices of pulse candidates from the cheap centre-including medians.
 
-    A cheap full-image prefilter on the residual to the centre-including median (cv2)
-    selects candidates; the exact posterior test then uses the centre-excluded median.
+    A superset of the pulses of the exact test: the residual to the fast median must exceed
+    ``_PREFILTER_FRACTION`` of the smallest threshold the exact test can use at that level
+    (the log term of the threshold is bounded by its value at the largest variance), so the
+    full-image work is a handful of array operations without logarithms.
     """
-    m = _median_blur(x, params.window_px)
-    d = np.subtract(x, m, dtype=_FLOAT)
-    if circular:
-        d = (d + 0.5) % 1.0 - 0.5
-    if residual_weight is not None:
-        d *= residual_weight
-    d *= 1.0 / _PREFILTER_FRACTION
-    candidates = model.is_pulse(d, m, params.posterior_threshold)
-    del d, m
-    if valid is not None:
-        candidates &= valid
-    rows, cols = np.nonzero(candidates)
-    mask = np.zeros(x.shape, bool)
-    if rows.size:
-        d_exact, m_exact = _exact_residual(x, rows, cols, params.window_px, circular, residual_weight)
-        pulse = model.is_pulse(d_exact, m_exact, params.posterior_threshold)
-        mask[rows[pulse], cols[pulse]] = True
-    return mask
+    const = model.log_odds_constant(params.posterior_threshold, model.pulse_rate)
+    fraction2 = _PREFILTER_FRACTION ** 2
+    if model.a > 0:
+        m_max = max(float(comp.median.max()) for comp in components)
+        factor = const - math.log(max(model.a * m_max + model.b, model.var_floor))
+    else:
+        s2 = max(model.b, model.var_floor)
+        factor = const - math.log(s2)
+    found = []
+    for comp in components:
+        d = np.subtract(comp.values, comp.median, dtype=_FLOAT)
+        if circular:
+            d -= np.rint(d)
+        if residual_weight is not None:
+            d *= residual_weight[comp.r0::comp.step, comp.c0::comp.step]
+        if factor <= 0:  # degenerate fit: test every pixel exactly
+            candidates = d > 0 if model.bright_only else d != 0
+        elif model.a > 0:
+            s2 = np.multiply(comp.median, _FLOAT(model.a * fraction2 * factor), dtype=_FLOAT)
+            s2 += _FLOAT(model.b * fraction2 * factor)
+            np.maximum(s2, _FLOAT(model.var_floor * fraction2 * factor), out=s2)
+            candidates = d > 0 if model.bright_only else None
+            d *= d
+            candidates = d > s2 if candidates is None else candidates & (d > s2)
+        else:
+            threshold = _FLOAT(_PREFILTER_FRACTION * math.sqrt(s2 * factor))
+            candidates = d > threshold if model.bright_only else np.abs(d) > threshold
+        found.append(comp.to_flat(np.flatnonzero(candidates), width))
+    return np.concatenate(found)
 
 
-def _grow_patches(x: np.ndarray, mask: np.ndarray, model: _NoiseModel, params: ImpulseParams,
-                  valid: np.ndarray | None, circular: bool,
-                  residual_weight: np.ndarray | None = None) -> np.ndarray:
+def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, params: ImpulseParams,
+                circular: bool, residual_weight: np.ndarray | None) -> np.ndarray:
+    """The candidates (flat indices) that are pulses by the posterior test."""
+    if candidates.size == 0:
+        return candidates
+    rows, cols = np.divmod(candidates, x.shape[1])
+    d, med = _exact_residual(x, rows, cols, params.window_px, circular, residual_weight)
+    return candidates[model.is_pulse(d, med, params.posterior_threshold)]
+
+
+def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: ImpulseParams,
+                  valid_flat: np.ndarray | None, circular: bool,
+                  residual_weight: np.ndarray | None, scratch: np.ndarray) -> np.ndarray:
     """Add neighbours of detected pulses that are pulses against their background.
 
-    Each round tests the ring of pixels next to the mask against the median of the pixels
-    of a 7x7 (or larger) window that are neither in the mask nor in the ring, so the still
-    undetected core of a large patch does not pull the background up; a patch is peeled
-    from its rim inward. The window is large enough to surround the pixel on an edge (a
-    3x3 window minus the patch would hold only pixels on one side). Ring pixels get the prior pulse probability ``params.neighbour_prior``: pulses
-    come as patches and tracks, so their fainter rims are accepted at a lower significance.
-    """
-    import cv2
+    Each round tests the ring of pixels next to the pulses against the median of the
+    pixels of a 7x7 (or larger) window that are neither pulses nor in the ring, so the
+    still undetected core of a large patch does not pull the background up; a patch is
+    peeled from its rim inward. The window is large enough to surround the pixel on an edge
+    (a 3x3 window minus the patch would hold only pixels on one side). Ring pixels get the
+    prior pulse probability ``params.neighbour_prior``: pulses come as patches and tracks,
+    so their fainter rims are accepted at a lower significance.
 
-    kernel = np.ones((3, 3), np.uint8)
+    ``seeds`` and the result are flat indices; ``scratch`` (uint8, zero) is used to mark
+    pulses and ring and is zero again on return.
+    """
+    if seeds.size == 0:
+        return seeds
+    h, w = x.shape
+    marks = scratch.ravel()
     prior = max(params.neighbour_prior, model.pulse_rate)
+    dr8 = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+    dc8 = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
+    pulses = seeds
+    marks[pulses] = 1
     for _ in range(params.max_patch_px):
-        if not mask.any():
+        rows, cols = np.divmod(pulses, w)
+        ring = np.unique(_flat_indices(rows, cols, dr8, dc8, (h, w)))
+        ring = ring[marks[ring] == 0]
+        if valid_flat is not None:
+            ring = ring[valid_flat[ring]]
+        if ring.size == 0:
             break
-        grown = cv2.dilate(mask.view(np.uint8), kernel).view(bool)
-        ring = grown & ~mask
-        if valid is not None:
-            ring &= valid
-        rows, cols = np.nonzero(ring)
-        if rows.size == 0:
-            break
-        med = _masked_median_at(x, grown, rows, cols, smallest_px=7)
-        d = x[rows, cols].astype(np.float64) - med
+        marks[ring] = 2
+        ring_rows, ring_cols = np.divmod(ring, w)
+        med = _masked_median_at(x, scratch, ring_rows, ring_cols, smallest_px=7)
+        d = x.ravel()[ring].astype(np.float64) - med
         if circular:
-            d = (d + 0.5) % 1.0 - 0.5
+            d -= np.rint(d)
         if residual_weight is not None:
-            d *= residual_weight[rows, cols]
+            d *= residual_weight.ravel()[ring]
         ok = np.isfinite(d)
-        new = np.zeros(rows.shape, bool)
+        new = np.zeros(ring.shape, bool)
         new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold, prior=prior)
+        marks[ring] = 0
         if not new.any():
             break
-        mask = mask.copy()
-        mask[rows[new], cols[new]] = True
-    return mask
+        marks[ring[new]] = 1
+        pulses = np.concatenate([pulses, ring[new]])
+    marks[pulses] = 0
+    return pulses
 
 
 def _to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
@@ -610,28 +704,23 @@ def _remove_grey_of_rgb(image: np.ndarray, params: ImpulseParams) -> ImpulseResu
 def rgb_to_hsv_counts(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split RGB (any real dtype, counts) into hue, saturation and value, float32.
 
+    Uses OpenCV's float conversion (the standard hexcone formulas, as
+    ``skimage.color.rgb2hsv``, but with V kept in the input's units).
+
     Returns
     -------
-    hue : ndarray, float32, in [0, 1) (0 red, 1/3 green, 2/3 blue; 0 where undefined)
+    hue : ndarray, float32, in [0, 1] (0 red, 1/3 green, 2/3 blue; 0 where undefined; 1 = 0)
     saturation : ndarray, float32, in [0, 1] ((max - min)/max; 0 where max is 0)
     value : ndarray, float32, max(R, G, B) in the input's units (counts)
     """
-    r = rgb[..., 0].astype(_FLOAT)
-    g = rgb[..., 1].astype(_FLOAT)
-    b = rgb[..., 2].astype(_FLOAT)
-    v = np.maximum(np.maximum(r, g), b)
-    mn = np.minimum(np.minimum(r, g), b)
-    delta = v - mn
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(v > 0, delta / v, 0).astype(_FLOAT)
-        safe = np.where(delta > 0, delta, 1).astype(_FLOAT)
-        hr = (g - b) / safe
-        hg = 2.0 + (b - r) / safe
-        hb = 4.0 + (r - g) / safe
-    h = np.where(v == r, hr, np.where(v == g, hg, hb))
-    h = np.where(delta > 0, h, 0).astype(_FLOAT)
-    h = (h / 6.0) % 1.0
-    return h.astype(_FLOAT), s, v
+    import cv2
+
+    hsv = cv2.cvtColor(np.ascontiguousarray(rgb, dtype=_FLOAT), cv2.COLOR_RGB2HSV)
+    hue, sat, val = (np.ascontiguousarray(hsv[..., k]) for k in range(3))
+    del hsv
+    # Hue can round up to exactly 1.0 (360 degrees); every use wraps it modulo 1.
+    hue *= _FLOAT(1.0 / 360.0)
+    return hue, sat, val
 
 
 def hsv_counts_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -656,17 +745,18 @@ def hsv_counts_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray
 
 
 def dominant_hue(h: np.ndarray, valid: np.ndarray, bins: int = 360) -> float:
-    """Most frequent hue (bin centre in [0, 1)) among ``valid`` pixels; 0 if none."""
-    sel = h[valid]
+    """Most frequent hue (bin centre in [0, 1)) among ``valid`` pixels (regular subsample)."""
+    step = max(1, int(math.sqrt(h.size / 1_000_000)))
+    sel = h[::step, ::step][valid[::step, ::step]]
     if sel.size == 0:
         return 0.0
-    if sel.size > 1_000_000:
-        sel = sel[_subsample_indices(sel.size, 1_000_000)]
     counts = np.bincount(np.minimum((sel * bins).astype(np.int64), bins - 1), minlength=bins)
     return (int(np.argmax(counts)) + 0.5) / bins
 
 
 def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
+    # Channels are cleaned in place: the cleaned H, S, V are the input's wherever their
+    # mask is False, so they rebuild the RGB of every changed pixel.
     h, s, v = rgb_to_hsv_counts(image)
     v_top = float(np.percentile(v[:: max(1, v.shape[0] // 512), :: max(1, v.shape[1] // 512)], 99))
     masks: dict[str, np.ndarray] = {}
@@ -682,7 +772,8 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
 
     # V first: bright zingers are clearest there, and a cleaner V defines the hue mask better.
     v_new, mask_v, model_v = _clean_channel(v, passes=params.passes_v, params=params,
-                                            photon_counting=True, bright_only=params.bright_only)
+                                            photon_counting=True, bright_only=params.bright_only,
+                                            in_place=True)
     _store("V", mask_v, model_v, True)
     # S and H are ratios of photon counts: their noise falls as 1/sqrt(V) (S) and
     # 1/(S sqrt(V)) (H). Residuals are weighted by the inverse of that factor (normalised to
@@ -691,30 +782,29 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     weight_s = root_v / max(float(np.median(root_v[::7, ::7])), 1e-12)
     s_new, mask_s, model_s = _clean_channel(s, passes=params.passes_s, params=params,
                                             photon_counting=False, bright_only=False, value_range=1.0,
-                                            residual_weight=weight_s)
+                                            residual_weight=weight_s, in_place=True)
     _store("S", mask_s, model_s, False)
     del weight_s
     hue_valid = (s_new >= params.min_saturation) & (v_new >= params.min_value_fraction * v_top)
     hue_mode = dominant_hue(h, hue_valid)
-    h_rot = (h - hue_mode + 0.5) % 1.0
+    h_rot = h
+    h_rot += _FLOAT(0.5 - hue_mode)
+    h_rot -= np.floor(h_rot)
     weight_h = s_new * root_v
     typical = weight_h[::7, ::7][hue_valid[::7, ::7]]
     weight_h /= max(float(np.median(typical)) if typical.size else 1.0, 1e-12)
     h_new, mask_h, model_h = _clean_channel(h_rot, passes=params.passes_h, params=params,
                                             photon_counting=False, bright_only=False,
                                             valid=hue_valid, circular=True, value_range=1.0,
-                                            residual_weight=weight_h)
+                                            residual_weight=weight_h, in_place=True)
     del weight_h, root_v
-    h_new = (h_new + hue_mode - 0.5) % 1.0
     _store("H", mask_h, model_h, False)
     out = image.copy()
     changed = mask_h | mask_s | mask_v
     if changed.any():
         rows, cols = np.nonzero(changed)
-        hh = np.where(mask_h[rows, cols], h_new[rows, cols], h[rows, cols])
-        ss = np.where(mask_s[rows, cols], s_new[rows, cols], s[rows, cols])
-        vv = np.where(mask_v[rows, cols], v_new[rows, cols], v[rows, cols])
-        rgb = hsv_counts_to_rgb(hh, ss, vv)
+        hh = (h_new[rows, cols] + (hue_mode - 0.5)) % 1.0
+        rgb = hsv_counts_to_rgb(hh, s_new[rows, cols], v_new[rows, cols])
         out[rows, cols] = _to_dtype(rgb, image.dtype)
     return ImpulseResult(out, {"H": mask_h, "S": mask_s, "V": mask_v}, gain, rate, noise)
 
