@@ -64,7 +64,7 @@ def _figure(path: Path, data, frame, res) -> None:
 
     crop = (slice(150, 330), slice(150, 330))
     fig, axes = plt.subplots(1, 3, figsize=(12, 4.3))
-    lo, hi = np.percentile(frame, [1, 99])
+    lo, hi = np.percentile(frame[crop], [1, 99.5])
     axes[0].imshow(frame[crop], cmap="gray", vmin=lo, vmax=hi)
     axes[0].set_title("frame 0 (crop)")
     axes[1].imshow(res.image[crop], cmap="gray", vmin=lo, vmax=hi)

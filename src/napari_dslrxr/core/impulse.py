@@ -42,7 +42,11 @@ __all__ = [
     "ImpulseResult",
     "remove_impulses",
     "remove_impulses_cfa",
+    "cfa_mask_to_mosaic",
     "demosaic_cleaned_raw",
+    "rgb_to_hsv_counts",
+    "hsv_counts_to_rgb",
+    "dominant_hue",
 ]
 
 #: Var[x - m] / Var[x] for independent pixels, ``m`` the median of the 8 detection samples
