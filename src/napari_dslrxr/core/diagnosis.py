@@ -23,6 +23,13 @@ Algorithm (notes ``physics.md`` §6–§7), on a single-channel linear recording
 5. **Stop.** When no candidate passes. Then the final residual is tested for leftover structure
    (tiles, and a generic smooth 2-D Legendre term of degree 4 with ΔBIC > 10): if present the
    result says ``unexplained`` and where.
+
+Large recordings are block-averaged to at most ``max_fit_size_px`` per side; the transmission
+(and a part of the blur, to avoid aliasing of sharp edges) is still computed on the full grid.
+With repeated frames and a dark frame (:func:`diagnose_edge_repeats`) the noise model comes from
+the frames' even/odd difference (correlated noise) and the offset from the dark frame.
+Cost: cached input spectrum and post-PSF image, so most Jacobian columns need one inverse FFT
+or none; offset and gain columns are analytic.
 """
 
 from __future__ import annotations
@@ -66,6 +73,9 @@ class DiagnosisOptions:
     binning : int or None
         Force this block-averaging factor (default: the smallest that fits ``max_fit_size_px``).
         Use it when the noise is spatially correlated (bin until lag-1 correlation is small).
+    pre_blur_fraction : float
+        For binned fits, this fraction of the starting blur width is applied on the full grid
+        before binning (avoids aliasing of sharp edges); the fitted width cannot go below it.
     fixed_offset_dn : float or None
         Hold the camera offset at this value (from a dark frame: the acquisition that separates
         a uniform glare floor from the black level, notes §4); default: fitted.
@@ -87,6 +97,7 @@ class DiagnosisOptions:
     binning: int | None = None
     noise_model_binned: tuple[float, float] | None = None
     fixed_offset_dn: float | None = None
+    pre_blur_fraction: float = 0.6
 
 
 @dataclass
@@ -207,18 +218,6 @@ class _Layout:
 
     def pack(self, base: dict, term_params: dict[str, dict]) -> np.ndarray:
         return np.array([base[k] if o == "base" else term_params[o][k] for o, k in self.names])
-
-
-def _jacobian(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray, f0: np.ndarray,
-              steps: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """Forward-difference Jacobian with per-parameter steps, stepping away from bounds."""
-    jac = np.empty((f0.size, x.size))
-    for j in range(x.size):
-        h = steps[j] if x[j] + steps[j] <= upper[j] else -steps[j]
-        xj = x.copy()
-        xj[j] += h
-        jac[:, j] = (fun(xj) - f0) / h
-    return jac
 
 
 # --------------------------------------------------------------------------- noise model
@@ -626,7 +625,12 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
     fine = np.asarray(thickness_mm, dtype=np.float64)[:h * s, :w * s]
     cgrid = ChainGrid((h // binning, w // binning), s * binning, grid.pitch_mm * binning,
                       grid.magnification_minus_one, grid.source_to_detector_mm)
-    model = ChainModel(fine, cgrid)
+    pre_blur = 0.0
+    if binning > 1:
+        start_sigma_px = np.hypot(base_start["focal_spot_sigma_mm"] * cgrid.magnification_minus_one,
+                                  base_start["detector_sigma_mm"]) / cgrid.pitch_mm
+        pre_blur = opts.pre_blur_fraction * start_sigma_px
+    model = ChainModel(fine, cgrid, pre_blur)
     problem = _Problem(y, model, mask)
     thickness_coarse = block_mean(fine, s * binning)
 
@@ -646,6 +650,12 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
             base0["offset_dn"], base0["gain_dn"] = float(b0), float(g0)
 
     layout = _Layout.build(base0, [], free_base)
+    if pre_blur > 0:
+        j = layout.names.index(("base", "detector_sigma_mm"))
+        fs_mm = base0["focal_spot_sigma_mm"] * cgrid.magnification_minus_one
+        floor_mm = float(np.sqrt(max((1.02 * pre_blur * cgrid.pitch_mm) ** 2 - fs_mm**2, 1e-10)))
+        layout.lower[j] = floor_mm
+        base0["detector_sigma_mm"] = max(base0["detector_sigma_mm"], 1.05 * floor_mm)
     x = layout.pack(base0, {})
     # Rough noise for the first fit, then the model-based estimate, then refit (IRLS).
     mu = model.expected(*layout.unpack(x))
@@ -713,6 +723,7 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
                 if spec.probe != spec.null and abs(value) > 0.1 * abs(spec.probe) and lo <= value <= hi:
                     start[spec.name] = value
             new_layout = _Layout.build(layout.base_fixed, terms_now + [term], free_base)
+            new_layout.lower[:len(free_base)] = layout.lower[:len(free_base)]
             base_cur, _ = layout.unpack(x)
             x0 = new_layout.pack(base_cur, {**term_values, term.name: start})
             x_ext, chi2_ext, jac_ext = problem.fit(new_layout, x0, max_nfev=opts.max_nfev)

@@ -293,11 +293,18 @@ class ChainModel:
         Fine-grid path length in mm.
     grid : ChainGrid
         Coarse grid (``grid.fine_factor == s``).
+    pre_blur_px : float
+        Gaussian sigma (coarse pixels) applied on the fine grid before block averaging (for
+        binned fits); the total blur must stay at least this large.
     """
 
-    def __init__(self, thickness_mm: np.ndarray, grid: ChainGrid):
+    def __init__(self, thickness_mm: np.ndarray, grid: ChainGrid, pre_blur_px: float = 0.0):
         self.thickness_mm = np.asarray(thickness_mm, dtype=np.float64)
         self.grid = grid
+        # Part of the Gaussian blur (sigma in *coarse* pixels) applied on the fine grid before
+        # block averaging: binning a sharp-edged image and blurring afterwards aliases; blurring
+        # first does not. The rest of the blur is applied on the coarse grid.
+        self.pre_blur_px = float(pre_blur_px)
         self._path_cache: tuple | None = None
         self._spectrum_cache: tuple | None = None
         self._light_cache: tuple | None = None
@@ -310,8 +317,14 @@ class ChainModel:
         for term, params in path_terms:
             term.apply(state, params)
         fine_t = np.exp(-state.path)
-        out = (block_mean(fine_t, self.grid.fine_factor),
-               block_mean(fine_t * state.path, self.grid.fine_factor))
+        fine_tp = fine_t * state.path
+        if self.pre_blur_px > 0 and self.grid.fine_factor > 1:
+            from scipy import ndimage
+
+            sigma_fine = self.pre_blur_px * self.grid.fine_factor
+            fine_t = ndimage.gaussian_filter(fine_t, sigma_fine, mode="reflect", truncate=3.5)
+            fine_tp = ndimage.gaussian_filter(fine_tp, sigma_fine, mode="reflect", truncate=3.5)
+        out = (block_mean(fine_t, self.grid.fine_factor), block_mean(fine_tp, self.grid.fine_factor))
         self._path_cache = (key, out)
         return out
 
@@ -340,6 +353,7 @@ class ChainModel:
         signal_key = (float(base["mu_per_mm"]), stage_key(("path", "fluence", "primary")))
         sigma_px = np.hypot(base["focal_spot_sigma_mm"] * g.magnification_minus_one,
                             base["detector_sigma_mm"]) / g.pitch_mm
+        sigma_px = float(np.sqrt(max(sigma_px**2 - self.pre_blur_px**2, 0.0)))
         light_key = (signal_key, float(sigma_px), stage_key(("psf",)))
         state = ChainState(g)
         if self._light_cache is not None and self._light_cache[0] == light_key:
