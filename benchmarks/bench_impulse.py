@@ -14,6 +14,7 @@ a quick check). Timings are inflated when other jobs share the CPU.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -135,6 +136,7 @@ def main() -> None:
         "peak_reset_supported": reset,
         "pulse_recall": round(recall, 4),
         "pulse_precision": round(precision, 4),
+        "load_average_1min": round(os.getloadavg()[0], 2),
         "note": "single run each; wall times inflated if other jobs share the 2 cores",
         "pass": bool(ratio <= 1 / 3),
     })

@@ -733,9 +733,13 @@ def rgb_to_hsv_counts(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     """
     import cv2
 
-    hsv = cv2.cvtColor(np.ascontiguousarray(rgb, dtype=_FLOAT), cv2.COLOR_RGB2HSV)
-    hue, sat, val = (np.ascontiguousarray(hsv[..., k]) for k in range(3))
-    del hsv
+    height, width = rgb.shape[:2]
+    hue, sat, val = (np.empty((height, width), _FLOAT) for _ in range(3))
+    rows_per_block = max(1, (1 << 20) // max(width, 1))  # bounded temporaries (~12 MB)
+    for r0 in range(0, height, rows_per_block):
+        r1 = min(height, r0 + rows_per_block)
+        block = cv2.cvtColor(np.ascontiguousarray(rgb[r0:r1], dtype=_FLOAT), cv2.COLOR_RGB2HSV)
+        hue[r0:r1], sat[r0:r1], val[r0:r1] = block[..., 0], block[..., 1], block[..., 2]
     # Hue can round up to exactly 1.0 (360 degrees); every use wraps it modulo 1.
     hue *= _FLOAT(1.0 / 360.0)
     return hue, sat, val
@@ -808,14 +812,16 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     h_rot = h
     h_rot += _FLOAT(0.5 - hue_mode)
     h_rot -= np.floor(h_rot)
-    weight_h = s_new * root_v
+    weight_h = root_v
+    weight_h *= s_new
+    del root_v
     typical = weight_h[::7, ::7][hue_valid[::7, ::7]]
     weight_h /= max(float(np.median(typical)) if typical.size else 1.0, 1e-12)
     h_new, mask_h, model_h = _clean_channel(h_rot, passes=params.passes_h, params=params,
                                             photon_counting=False, bright_only=False,
                                             valid=hue_valid, circular=True, value_range=1.0,
                                             residual_weight=weight_h, in_place=True)
-    del weight_h, root_v
+    del weight_h
     _store("H", mask_h, model_h, False)
     out = image.copy()
     changed = mask_h | mask_s | mask_v
