@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _harness import peak_rss_mb, record  # noqa: E402
+from _harness import best_time, peak_rss_mb, record  # noqa: E402
 
 PULSE_FRACTION = 0.001  # of the pixels, in patches of 1x1 to 4x4
 
@@ -108,17 +108,23 @@ def main() -> None:
 
     t0, c0 = time.perf_counter(), time.process_time()
     result = remove_impulses(frame)
-    t_ours, cpu_ours = time.perf_counter() - t0, time.process_time() - c0
+    t_first, cpu_ours = time.perf_counter() - t0, time.process_time() - c0
     rss_ours = current_peak_rss_mb()
+    # Best of three wall times for both (the harness's convention): other jobs on the two
+    # shared cores inflate single runs by up to 2x.
+    t_ours = min(t_first, best_time(lambda: remove_impulses(frame), repeat=2))
     found = result.any_mask()
     hit = int(np.count_nonzero(found & truth))
     recall, precision = hit / max(int(truth.sum()), 1), hit / max(int(found.sum()), 1)
     del result
 
-    t0, c0 = time.perf_counter(), time.process_time()
-    for channel in range(3):
-        ndi.median_filter(frame[..., channel], size=3)
-    t_median, cpu_median = time.perf_counter() - t0, time.process_time() - c0
+    def median_three_channels() -> None:
+        for channel in range(3):
+            ndi.median_filter(frame[..., channel], size=3)
+
+    c0 = time.process_time()
+    t_median = best_time(median_three_channels, repeat=3)
+    cpu_median = (time.process_time() - c0) / 3
 
     ratio = t_ours / t_median
     record("impulse", {
@@ -137,7 +143,8 @@ def main() -> None:
         "pulse_recall": round(recall, 4),
         "pulse_precision": round(precision, 4),
         "load_average_1min": round(os.getloadavg()[0], 2),
-        "note": "single run each; wall times inflated if other jobs share the 2 cores",
+        "note": "wall: best of 3 each; CPU: ours first run, median mean of 3; other jobs on the "
+                "2 shared cores inflate wall times",
         "pass": bool(ratio <= 1 / 3),
     })
 
