@@ -331,3 +331,18 @@ def test_decompression_bomb_is_refused_by_the_limit(tmp_path, kind):
     finally:
         tracemalloc.stop()
     assert peak < 2_000_000
+
+
+def test_png_chunk_declaring_2_gb_is_refused_without_allocating(tmp_path):
+    """Found by fuzzing (peak memory +2.5 GB): OpenCV allocates a chunk's declared length first."""
+    import resource
+
+    ok, encoded = cv2.imencode(".png", np.zeros((16, 16), np.uint8))
+    data = encoded.tobytes()
+    # After the 33-byte signature + IHDR: a text chunk claiming 2 GB, holding 3 bytes.
+    path = tmp_path / "chunk.png"
+    path.write_bytes(data[:33] + struct.pack(">I", 0x7FFFFFF0) + b"tEXt" + b"abc" + data[33:])
+    peak_before_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(InputError, match="chunk tEXt at byte 33 declares 2147483632 bytes"):
+        io.read_image(path)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak_before_kib < 100 << 10

@@ -462,9 +462,11 @@ def _read_png(path: Path, limit: int) -> LoadedImage:
             _check_declared_size(path, height, width, _PNG_SAMPLES[colour_type],
                                  2 if bit_depth == 16 else 1, limit)
             fh.seek(0)
-            buffer = np.frombuffer(fh.read(), np.uint8)
+            content = fh.read()
     except OSError as exc:
         raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    _check_png_chunks(path, content)
+    buffer = np.frombuffer(content, np.uint8)
     try:
         with _quiet_decoder() as chatter:
             data = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED)
@@ -479,6 +481,27 @@ def _read_png(path: Path, limit: int) -> LoadedImage:
         code = cv2.COLOR_BGRA2RGB if data.shape[2] == 4 else cv2.COLOR_BGR2RGB
         data = cv2.cvtColor(data, code)
     return LoadedImage(validate_image(data, path), path, "png", {"bit_depth": int(bit_depth)})
+
+
+def _check_png_chunks(path: Path, content: bytes) -> None:
+    """Refuse a PNG whose chunk lengths point past the end of the file.
+
+    OpenCV allocates (and fills) a buffer of a chunk's declared length before it notices
+    that the file is shorter, so one damaged length of 2 GB costs 2 GB of memory.
+    """
+    import struct
+
+    pos = 8
+    while pos + 8 <= len(content):
+        length, kind = struct.unpack(">I4s", content[pos:pos + 8])
+        end = pos + 12 + length
+        if length > 0x7FFFFFFF or end > len(content):
+            name = kind.decode("latin-1") if kind.isalpha() else repr(kind)
+            raise InputError(path, f"corrupt or truncated PNG (chunk {name} at byte {pos} declares "
+                                   f"{length} bytes; the file ends at byte {len(content)})")
+        if kind == b"IEND":
+            return
+        pos = end
 
 
 def _read_dicom(path: Path, limit: int) -> LoadedImage:
