@@ -87,6 +87,23 @@ def test_concealed_term_is_named_and_recovered(scene, name):
     assert result.added[0].delta_bic > 10
     assert result.final_chi2_per_dof <= 1.05
     assert not result.unexplained
+    # radial terms about a free centre are the notes' confusable pair (§4): must be flagged
+    partner = {"inverse_square": "vignetting", "vignetting": "inverse_square"}.get(name)
+    if partner:
+        assert partner in [n for n, c in result.added[0].confusable_with if c > 0.9]
+
+
+def test_binned_fit_of_a_larger_recording_names_the_term_without_extras():
+    big = make_scene(256)
+    # binned fits need a blur of at least ~1 binned pixel (else the binned model aliases)
+    big.detector_sigma_mm = 0.3
+    truth = {"eta": 0.02, "range_mm": 1.5}
+    recording, _ = simulate_recording(big, effects={"veiling_glare": truth}, seed=8)
+    result = diagnose_scene(big, recording, DiagnosisOptions(max_fit_size_px=128))
+    assert result.binning == 2
+    assert [a.effect for a in result.added] == ["veiling_glare"]
+    assert_recovered(result.added[0], "veiling_glare", truth)
+    assert result.final_chi2_per_dof <= 1.05
 
 
 def test_null_recordings_add_nothing_in_at_least_95_percent_of_seeds():

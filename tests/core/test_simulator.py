@@ -129,3 +129,13 @@ def test_wrong_thickness_shape_rejected():
     with pytest.raises(InputError, match="2-D"):
         parse_scene({"geometry": {"source_to_detector_mm": 1, "source_to_object_mm": 1, "pixel_pitch_mm": 1},
                      "object": {"material": "water"}, "source": {"kvp": 60}}, thickness=np.zeros((4, 4, 3)))
+
+
+def test_cfa_option_applies_rggb_plane_gains(scene_file):
+    scene = load_scene(scene_file)
+    scene.thickness_mm = np.zeros((64, 64))
+    scene.cfa = True
+    y, truth = simulate_recording(scene, seed=2)
+    signal = truth["expected"] - scene.offset_dn
+    assert signal[0::2, 0::2].mean() == pytest.approx(0.15 * signal[0::2, 1::2].mean(), rel=1e-6)
+    assert signal[1::2, 1::2].mean() == pytest.approx(0.10 * signal[1::2, 0::2].mean(), rel=1e-6)

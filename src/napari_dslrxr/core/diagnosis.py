@@ -799,6 +799,12 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
                    f"{smooth_dbic:.1f}); not in the library")
     else:
         message = "added " + ", ".join(a.effect for a in added) + "; residuals consistent with noise"
+    final_base = layout.unpack(x)[0]
+    sigma_coarse_px = np.hypot(final_base["focal_spot_sigma_mm"] * cgrid.magnification_minus_one,
+                               final_base["detector_sigma_mm"]) / cgrid.pitch_mm
+    if binning > 1 and sigma_coarse_px < 1.0:
+        message += (f" (caution: blur {sigma_coarse_px:.2f} binned px < 1 — the {binning}× binned model "
+                    "may alias at sharp edges; use a smaller binning)")
     return DiagnosisResult(
         base_chi2_per_dof=float(base_chi2_dof), base_bic=float(base_bic), regions=regions, added=added,
         final_chi2_per_dof=float(final_dof), unexplained=unexplained,
