@@ -821,7 +821,11 @@ def diagnose(recording: np.ndarray, thickness_mm: np.ndarray, grid: ChainGrid,
 
 def diagnose_scene(scene: Scene, recording: np.ndarray, options: DiagnosisOptions | None = None,
                    progress: Callable[[str], None] | None = None) -> DiagnosisResult:
-    """:func:`diagnose` with geometry, object and starting values from a :class:`Scene`."""
+    """:func:`diagnose` with geometry, object and starting values from a :class:`Scene`.
+
+    The scene's ``[effects.*]`` tables are not part of the fitted model (they are what
+    ``simulate`` injects); the diagnosis starts from the base model and finds them itself.
+    """
     if tuple(np.shape(recording)) != scene.shape:
         raise InputError(scene.path or "scene", f"recording shape {np.shape(recording)} does not match "
                                                 f"the thickness map {scene.shape}")
