@@ -35,7 +35,9 @@ gradient with respect to the global parameters is the inner product of the back-
 residual with ``irfft(dOTF / (2 pi i f))`` evaluated in the Fourier domain (Parseval), and the
 derivative with respect to ``d`` is the slope of the linear interpolant (so the gradient is the
 gradient of the very objective the optimiser sees; ``tests/core/test_edge_fit.py`` checks it
-against finite differences).
+against finite differences). The optimiser works in coordinates scaled by the square root of the
+Gauss-Newton Hessian diagonal at the start (unit curvature per coordinate), which halves the
+iterations.
 
 Parameters: log FWHMs of the source (``F_x``, ``F_y``, source plane) and detector components
 (core, tail), the core weight ``w`` in ``[0.5, 1]``, and per edge ``c_j``, ``phi_j``, ``a_j``,
