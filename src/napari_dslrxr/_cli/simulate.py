@@ -26,7 +26,7 @@ def register(app: typer.Typer) -> None:
         output: Path = typer.Option(..., "-o", "--output", help="Recording to write (float32 TIFF, DN)."),
         effect: Optional[list[str]] = typer.Option(
             None, "--effect", help="NAME=VALUE (main amplitude) or NAME=k1:v1,k2:v2; repeatable."),
-        seed: int = typer.Option(0, "--seed", help="Noise seed (same seed, same bytes)."),
+        seed: int = typer.Option(0, "--seed", min=0, help="Noise seed, >= 0 (same seed, same bytes)."),
     ) -> None:
         """Simulate a recording of the scene through the imaging chain."""
         from ..core import io, provenance, simulator

@@ -161,7 +161,7 @@ def _get(table: dict, section: str, key: str, source, *, default=None, kind=floa
     value = sec[key]
     try:
         value = kind(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: int(inf)
         raise ParameterError(f"{source}: [{section}] {key} must be a {kind.__name__}, got {value!r}") from None
     if kind is float and not np.isfinite(value):
         raise ParameterError(f"{source}: [{section}] {key} must be finite, got {value!r}")
@@ -245,10 +245,12 @@ def parse_scene(table: dict, *, source: str = "scene", base_dir: str | os.PathLi
     if not isinstance(eff_table, dict):
         raise ParameterError(f"{source}: [effects] must be a table of [effects.NAME] tables")
     for name, params in eff_table.items():
-        term = get_term(name)
         if not isinstance(params, dict):
             raise ParameterError(f"{source}: [effects.{name}] must be a table of parameters")
-        effects[name] = validate_params(term, params)
+        try:
+            effects[name] = validate_params(get_term(name), params)
+        except ParameterError as exc:  # name the scene file, as every other scene error does
+            raise ParameterError(f"{source}: [effects.{name}]: {exc}") from None
     return Scene(path=None, source_to_detector_mm=sdd, source_to_object_mm=sod, pixel_pitch_mm=pitch,
                  thickness_mm=thickness, material=material, kvp=kvp, mu_per_mm=mu,
                  supersample=supersample, effects=effects, thickness_path=thickness_path, **cam)
