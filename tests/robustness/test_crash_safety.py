@@ -124,10 +124,7 @@ def test_killed_batch_leaves_nothing_partial_and_a_rerun_completes(batch, tmp_pa
     assert cli.main(["run", str(batch), "-o", str(reference)]) == 0
     assert _image_bytes(out) == _image_bytes(reference)
     missing_sidecars = [name for name in images if name + ".json" not in names]
-    if missing_sidecars:
-        # Known: 'dslrxr run' skips an input when its images exist, even if a kill landed
-        # between an image and its sidecar (reported to developer B; _cli/pipeline.py).
-        pytest.xfail(f"rerun left outputs without sidecars: {missing_sidecars}")
+    assert not missing_sidecars, f"rerun left outputs without sidecars: {missing_sidecars}"
 
 
 def _image_bytes(out: Path) -> dict[str, bytes]:
@@ -221,9 +218,7 @@ def test_sidecar_records_the_psf_geometry_of_a_deblurred_output(batch, tmp_path,
     record = json.loads((tmp_path / "o" / "frame_01_dslrxr.tif.json").read_text())
     assert io.file_sha256(psf_path) in [i["sha256"] for i in record["inputs"]]  # a checksummed input
     numbers = set(_numbers(record["parameters"])) | set(_numbers(record["results"]))
-    if not {900.0, 1000.0} <= numbers:
-        pytest.xfail("known gap: 'dslrxr run' sidecars omit --source-to-object-mm/--source-to-detector-mm "
-                     "(core/pipeline.py, developer B)")
+    assert {900.0, 1000.0} <= numbers, "the sidecar does not record the deblurring geometry"
 
 
 def _numbers(value):
@@ -246,9 +241,7 @@ def test_rerun_completes_a_batch_killed_between_an_image_and_its_sidecar(batch, 
     sidecar.unlink()  # what a SIGKILL after the PNG's rename and before its sidecar leaves
     assert cli.main(["run", str(batch / "frame_02.tif"), "-o", str(out)]) == 0
     capsys.readouterr()
-    if not sidecar.exists():
-        pytest.xfail("known gap: 'dslrxr run' skips an input whose images exist even when a sidecar "
-                     "is missing (_cli/pipeline.py, developer B)")
+    assert sidecar.exists(), "the rerun skipped an input whose sidecar was missing"
     assert_nothing_partial(out)
 
 

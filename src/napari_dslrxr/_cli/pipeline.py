@@ -66,6 +66,7 @@ def register(app: typer.Typer) -> None:
         """Run the whole pipeline on each input; write TIFF, PNG (and DICOM) with JSON sidecars."""
         from ..core.params import PipelineParams, load_params, params_to_dict
         from ..core.pipeline import output_paths
+        from ..core.provenance import sidecar_path
 
         params = load_params(config) if config is not None else PipelineParams()
         if dicom:
@@ -83,7 +84,9 @@ def register(app: typer.Typer) -> None:
         todo, skipped = [], 0
         for f in files:
             expected = output_paths(f, out, params)
-            if not overwrite and expected and all(p.exists() for p in expected.values()):
+            # Finished means every image AND its sidecar: a kill between the two must be redone.
+            if not overwrite and expected and all(p.exists() and sidecar_path(p).exists()
+                                                  for p in expected.values()):
                 skipped += 1
                 continue
             todo.append({"input": str(f), "out_dir": str(out), "params": params_to_dict(params),

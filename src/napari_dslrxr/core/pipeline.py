@@ -363,8 +363,12 @@ def preview_uint8(display: np.ndarray, max_side_px: int = 2048) -> np.ndarray:
 
 def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Sequence[str | os.PathLike],
                   params: PipelineParams, pixel_spacing_mm: float | None = None,
-                  patient: dict | None = None, uid_seed: str | None = None) -> list[Path]:
+                  patient: dict | None = None, uid_seed: str | None = None,
+                  run_options: dict | None = None) -> list[Path]:
     """Write the TIFF / PNG / DICOM outputs of a run, each with a JSON sidecar.
+
+    ``run_options`` (for example the deblurring geometry in mm) are recorded in each sidecar
+    beside the parameters, so an output can be reproduced from its sidecar alone.
 
     Returns
     -------
@@ -377,6 +381,8 @@ def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Seq
 
     written = []
     sidecar_results = {**result.results, "voi_window": list(result.voi_window)}
+    if run_options:
+        sidecar_results["run_options"] = dict(run_options)
     description = json.dumps({"software": "napari-dslrxr", "version": __version__, "stage": "run",
                               "polarity": params.output.polarity}, sort_keys=True)
     spacing = pixel_spacing_mm or (params.output.pixel_spacing_mm or None)
@@ -487,5 +493,10 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     spacing = float(spacing[0]) if spacing else None
     extra = f"{source_to_object_mm}|{source_to_detector_mm}|{json.dumps(patient or {}, sort_keys=True)}"
     paths = output_paths(input_path, out_dir, params)
+    run_options = None
+    if psf_path is not None:
+        run_options = {"source_to_object_mm": float(source_to_object_mm),
+                       "source_to_detector_mm": float(source_to_detector_mm)}
     return write_outputs(result, paths, inputs=inputs, params=params, pixel_spacing_mm=spacing,
-                         patient=patient, uid_seed=run_identity(inputs, params, extra))
+                         patient=patient, uid_seed=run_identity(inputs, params, extra),
+                         run_options=run_options)
