@@ -96,7 +96,6 @@ def command_line(draw, files: dict[str, Path], out_dir: Path) -> list[str]:
     return argv
 
 
-#: (command, phrase of the one-line message). They are counted, not failed.
 def _run_in_process(argv: list[str], capsys) -> tuple[int, str]:
     code = cli.main(argv)
     _, err = capsys.readouterr()
