@@ -78,6 +78,15 @@ _PREFILTER_FRACTION = 0.6
 _REPLACEMENT_WINDOWS_PX = (3, 5, 7, 9)
 _REPLACEMENT_MIN_GOOD = (5, 8, 12, 12)
 
+#: Seed test: the spread of the 8 detection samples may exceed the noise by this factor
+#: before it raises the residual variance (8 samples estimate a spread only roughly; a
+#: factor 2 is rarely reached on a smooth background, always on edges and screen corners).
+_SEED_SPREAD_TOLERANCE = 3.0
+
+#: Percentage of the EM samples, the darkest, whose residual variance is the floor of the
+#: photon-counting variance model (the read-noise term; see ``_dark_end_variance``).
+_DARK_END_PERCENT = 1.0
+
 _FLOAT = np.float32
 
 
@@ -270,12 +279,17 @@ _SORT8_NETWORK = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7)
                   (0, 4), (3, 7), (1, 5), (2, 6), (1, 4), (3, 6), (2, 4), (3, 5), (3, 4))
 
 
-def _ring_median_at(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int) -> np.ndarray:
+def _ring_median_at(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int,
+                    with_spread: bool = False):
     """Median of the 8 detection samples around each pixel, centre excluded (float64).
 
     The samples are those of :func:`_detection_components` without the centre: the 8 neighbours
     (``size_px`` 3) or the 8 pixels two steps away (5). Borders are replicated. The median
     of 8 is the mean of the 4th and 5th values, found by a sorting network over the columns.
+
+    ``with_spread``: also return the spread of the 8 samples, (v6 + v7 - v2 - v3) / 2 of the
+    sorted values over 1.325, its expected value for 8 Gaussian samples of unit deviation
+    (float64): about the noise on a smooth background, far more on edges and corners.
     """
     step = 1 if size_px == 3 else 2
     dr = np.array([-step, -step, -step, 0, 0, step, step, step])
@@ -287,7 +301,27 @@ def _ring_median_at(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: 
         low = np.minimum(v[i], v[j])
         v[j] = np.maximum(v[i], v[j])
         v[i] = low
-    return 0.5 * (v[3].astype(np.float64) + v[4])
+    median = 0.5 * (v[3].astype(np.float64) + v[4])
+    if not with_spread:
+        return median
+    spread = ((v[5].astype(np.float64) + v[6]) - (v[1].astype(np.float64) + v[2])) / (2.0 * 1.325)
+    return median, spread
+
+
+def _square_ring_spread(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, radius_px: int) -> np.ndarray:
+    """Spread of the pixels at Chebyshev distance ``radius_px`` around each pixel (float64).
+
+    (q3 - q1)/1.349 of the ``8 radius_px`` pixels of the square ring (border replicated): the
+    noise on a smooth background, far more across an edge or at a corner of the screen.
+    """
+    r = int(radius_px)
+    dr, dc = _window_offsets(2 * r + 1)
+    on_ring = np.maximum(np.abs(dr), np.abs(dc)) == r
+    flat = _flat_indices(rows, cols, dr[on_ring], dc[on_ring], x.shape)
+    vals = np.ascontiguousarray(x).ravel()[flat]
+    vals.sort(axis=1)
+    n = vals.shape[1]
+    return (vals[:, (3 * (n - 1)) // 4].astype(np.float64) - vals[:, (n - 1) // 4]) / 1.349
 
 
 def _flat_indices(rows: np.ndarray, cols: np.ndarray, dr: np.ndarray, dc: np.ndarray, shape) -> np.ndarray:
@@ -316,17 +350,27 @@ def _window_flat_indices(rows: np.ndarray, cols: np.ndarray, size_px: int, shape
 
 
 def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                      smallest_px: int = 3) -> np.ndarray:
+                      smallest_px: int = 3, symmetric: bool = False, with_spread: bool = False):
     """Median of the non-excluded pixels around each (row, col), float64.
 
     Tries windows of 3 (or ``smallest_px``), 5, 7 and 9 px and uses, per pixel, the smallest
     with enough non-excluded pixels. Borders are replicated. Returns NaN where even the
     largest window holds no usable pixel. Hue must already be rotated so that the values do
     not straddle the wrap (the median is then the linear one).
+
+    ``symmetric``: a pixel is also left out when its mirror image through the centre is
+    excluded. The remaining set is point-symmetric, so on a locally linear ramp (a blurred
+    edge) its median is the centre's expected value; excluding the pulses on one side only
+    would pull the median towards the other side, and patch growth would then creep along
+    the ramp, pixel by pixel, down the gradient.
+
+    ``with_spread``: also return the spread of those pixels, (q3 - q1)/1.349 (the standard
+    deviation for Gaussian noise; larger where the window holds structure, float64).
     """
     x_flat = np.ascontiguousarray(x).ravel()
     excluded_flat = np.ascontiguousarray(excluded).ravel()
     out = np.full(rows.shape, np.nan)
+    spread = np.full(rows.shape, np.nan) if with_spread else None
     todo = np.arange(rows.size)
     for size, min_good in zip(_REPLACEMENT_WINDOWS_PX, _REPLACEMENT_MIN_GOOD, strict=True):
         if todo.size == 0:
@@ -336,6 +380,8 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
         flat = _window_flat_indices(rows[todo], cols[todo], size, x.shape)
         vals = x_flat[flat].astype(_FLOAT, copy=False)
         bad = excluded_flat[flat] != 0
+        if symmetric:
+            bad |= bad[:, ::-1]  # row-major window: the mirror of offset k is offset n - 1 - k
         good_count = size * size - np.count_nonzero(bad, axis=1)
         vals[bad] = np.inf
         vals.sort(axis=1)
@@ -346,8 +392,12 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
             lo = np.take_along_axis(vals[idx], ((n - 1) // 2)[:, None], axis=1)[:, 0]
             hi = np.take_along_axis(vals[idx], (n // 2)[:, None], axis=1)[:, 0]
             out[todo[idx]] = 0.5 * (lo.astype(np.float64) + hi)
+            if with_spread:
+                q1 = np.take_along_axis(vals[idx], ((n - 1) // 4)[:, None], axis=1)[:, 0]
+                q3 = np.take_along_axis(vals[idx], ((3 * (n - 1)) // 4)[:, None], axis=1)[:, 0]
+                spread[todo[idx]] = (q3.astype(np.float64) - q1) / 1.349
         todo = todo[~enough]
-    return out
+    return (out, spread) if with_spread else out
 
 
 @dataclass
@@ -361,6 +411,8 @@ class _NoiseModel:
     bright_only: bool
     var_floor: float
     min_contrast: float = 0.0
+    #: Photon-counting channels: median level of the darkest fit samples (nan if unknown).
+    dark_level: float = float("nan")
 
     def variance(self, m: np.ndarray) -> np.ndarray:
         return np.maximum(self.a * m + self.b, self.var_floor)
@@ -372,13 +424,16 @@ class _NoiseModel:
                 - math.log(2.0 * math.pi))
 
     def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float,
-                 prior: float | None = None) -> np.ndarray:
+                 prior: float | None = None, min_variance: np.ndarray | None = None) -> np.ndarray:
         """Posterior pulse probability > threshold, vectorised (float32 inputs allowed).
 
         r > t  <=>  d^2/s^2 > 2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi s^2),
-        with ``P`` the fitted pulse rate unless a ``prior`` is given.
+        with ``P`` the fitted pulse rate unless a ``prior`` is given, and ``s^2`` at least
+        ``min_variance`` where that is given.
         """
         s2 = self.variance(m)
+        if min_variance is not None:
+            s2 = np.maximum(s2, min_variance)
         const = self.log_odds_constant(posterior_threshold, self.pulse_rate if prior is None else prior)
         limit = s2 * (const - np.log(s2))
         pulse = (d * d > limit) & (limit > 0) | (limit <= 0)
@@ -401,8 +456,11 @@ def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, bright_
         level = np.maximum(m - float(np.percentile(m, 0.5)), 0.0) + 1.0
         scale = 1.4826 * float(np.median(np.abs(d) / np.sqrt(level)))
         a, b = max(scale * scale, 0.0), max(var_floor, 0.0)
+        dark_level, dark_variance = _dark_end(d, m)
+        var_floor = max(var_floor, dark_variance)
     else:
         a, b = 0.0, max(mad * mad, var_floor)
+        dark_level = float("nan")
     model = _NoiseModel(a, b, 0.01, density, bright_only, var_floor)
     d2 = d * d
     for _ in range(iterations):
@@ -434,7 +492,27 @@ def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, bright_
         model = _NoiseModel(float(a_new), float(b_new), new_rate, density, bright_only, var_floor)
         if change < 1e-4:
             break
+    model.dark_level = dark_level
     return model
+
+
+def _dark_end(d: np.ndarray, m: np.ndarray) -> tuple[float, float]:
+    """Level (median ``m``) and robust residual variance of the darkest samples.
+
+    The darkest ``_DARK_END_PERCENT`` of the samples are used.
+
+    The photon-counting variance ``G (m - o) + sigma_e^2`` never falls below the read-noise
+    term ``sigma_e^2``, but the straight line ``a m + b`` fitted to it crosses zero near the
+    offset ``o``; below the camera's black level plus a few counts (the dark surround of the
+    screen) it would promise a noise far below the real one and flag read noise as pulses.
+    Measured (1.4826 MAD, so pulses do not inflate it) where the image is darkest, it is the
+    floor of the variance model; on an image without dark parts it is the variance at its
+    darkest level and changes nothing above it. (nan, 0) when there are too few samples.
+    """
+    dark = m <= np.percentile(m, _DARK_END_PERCENT)
+    if np.count_nonzero(dark) < 50:
+        return float("nan"), 0.0
+    return float(np.median(m[dark])), (1.4826 * float(np.median(np.abs(d[dark])))) ** 2
 
 
 def _median_lookup(components: list[_Component], rows: np.ndarray, cols: np.ndarray, shape) -> np.ndarray:
@@ -490,8 +568,11 @@ def _subsample_indices(n: int, count: int) -> np.ndarray:
 def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_counting: bool,
                    bright_only: bool, valid: np.ndarray | None = None, circular: bool = False,
                    value_range: float | None = None, residual_weight: np.ndarray | None = None,
-                   in_place: bool = False):
+                   in_place: bool = False, fit_region: np.ndarray | None = None):
     """Detect and replace pulses in one float32 channel (``in_place``: in ``x`` itself).
+
+    ``fit_region`` (bool, optional): the noise model is fitted on these pixels only (and
+    within ``valid``); detection still covers every valid pixel.
 
     ``residual_weight`` (constant-variance channels): residuals are multiplied by it before
     the Gaussian model is fitted and applied, so that a channel whose noise is known to
@@ -514,7 +595,10 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         value_range = float(x.max() - x.min())
     value_range = max(value_range, 1e-12)
     components = _detection_components(x, params.window_px)
-    pick = _flat_area_sample(components, valid, params.em_samples, photon_counting, (h, w))
+    fit_valid = valid if fit_region is None else (fit_region if valid is None else valid & fit_region)
+    pick = _flat_area_sample(components, fit_valid, params.em_samples, photon_counting, (h, w))
+    if pick.size < 16 and fit_region is not None:  # too few: fit on every valid pixel
+        pick = _flat_area_sample(components, valid, params.em_samples, photon_counting, (h, w))
     if pick.size < 16:
         return x, mask_total, None
     d_fit, m_fit = _exact_residual(x, *np.divmod(pick, w), params.window_px, circular, residual_weight)
@@ -610,8 +694,18 @@ def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, param
     if candidates.size == 0:
         return candidates
     rows, cols = np.divmod(candidates, x.shape[1])
-    d, med = _exact_residual(x, rows, cols, params.window_px, circular, residual_weight)
-    return candidates[model.is_pulse(d, med, params.posterior_threshold)]
+    d, med = _exact_residual(x, rows, cols, params.window_px, circular, None)
+    spread = _square_ring_spread(x, rows, cols, params.max_patch_px)
+    if residual_weight is not None:
+        weight = residual_weight[rows, cols]
+        d *= weight
+        spread *= weight
+    # Structure guard: where the background around the candidate spreads far more than the
+    # noise (an edge, the corner of the screen), the residual is not Gaussian around the
+    # median; the variance is then at least (spread / _SEED_SPREAD_TOLERANCE)^2. The spread
+    # is taken just outside the largest patch, so the patch itself never inflates it.
+    spread /= _SEED_SPREAD_TOLERANCE
+    return candidates[model.is_pulse(d, med, params.posterior_threshold, min_variance=spread * spread)]
 
 
 def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: ImpulseParams,
@@ -649,15 +743,19 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
             break
         marks[ring] = 2
         ring_rows, ring_cols = np.divmod(ring, w)
-        med = _masked_median_at(x, scratch, ring_rows, ring_cols, smallest_px=7)
+        med, spread = _masked_median_at(x, scratch, ring_rows, ring_cols, smallest_px=7,
+                                        symmetric=True, with_spread=True)
         d = x.ravel()[ring].astype(np.float64) - med
         if circular:
             d -= np.rint(d)
         if residual_weight is not None:
-            d *= residual_weight.ravel()[ring]
+            weight = residual_weight.ravel()[ring]
+            d *= weight
+            spread *= weight
         ok = np.isfinite(d)
         new = np.zeros(ring.shape, bool)
-        new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold, prior=prior)
+        new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold, prior=prior,
+                                 min_variance=spread[ok] ** 2)
         marks[ring] = 0
         if not new.any():
             break
@@ -717,6 +815,74 @@ def _remove_grey_of_rgb(image: np.ndarray, params: ImpulseParams) -> ImpulseResu
 
 
 # --------------------------------------------------------------------------- HSV
+
+
+def _erode(mask: np.ndarray, size_px: int) -> np.ndarray:
+    """Pixels whose whole ``size_px`` square window is in ``mask`` (bool; border replicated)."""
+    import cv2
+
+    kernel = np.ones((size_px, size_px), np.uint8)
+    eroded = cv2.erode(np.ascontiguousarray(mask).view(np.uint8), kernel,
+                       borderType=cv2.BORDER_REPLICATE)
+    return eroded.view(bool)
+
+
+def _median3(x: np.ndarray) -> np.ndarray:
+    """3x3 median (float32, new array, replicated border)."""
+    import cv2
+
+    return cv2.medianBlur(np.ascontiguousarray(x, dtype=_FLOAT), 3)
+
+
+def _count_variance(values: np.ndarray, model: "_NoiseModel | None") -> np.ndarray:
+    """Noise variance of counts ``values`` (float32, new array) from V's fitted model.
+
+    ``max(a c + b, floor)``: the photon-counting line and its read-noise floor (in units of
+    the detection residual; only ratios of these variances are used). Below the darkest
+    level V was fitted on (the minimum channel of a saturated colour can lie far below it)
+    the line is not extrapolated (its intercept is poorly determined there); the variance
+    falls in proportion to the counts instead, Poisson without offset. Without a V model
+    (no V pass, or too small an image) plain Poisson, ``Var[c]`` proportional to ``c``.
+    """
+    out = np.maximum(values, _FLOAT(0.0), dtype=_FLOAT)
+    if model is None or model.a <= 0:
+        out += _FLOAT(1e-12)
+        return out
+    below = None
+    if math.isfinite(model.dark_level) and model.dark_level > 0:
+        below = out < _FLOAT(model.dark_level)
+        var_at_dark = max(model.a * model.dark_level + model.b, model.var_floor, 1e-12)
+        scaled_below = out[below] * _FLOAT(var_at_dark / model.dark_level)
+    out *= _FLOAT(model.a)
+    out += _FLOAT(model.b)
+    np.maximum(out, _FLOAT(max(model.var_floor, 1e-12)), out=out)
+    if below is not None:
+        out[below] = np.maximum(scaled_below, _FLOAT(1e-12))
+    return out
+
+
+def _saturation_weight(s: np.ndarray, v: np.ndarray, var_v: np.ndarray,
+                       model: "_NoiseModel | None") -> np.ndarray:
+    """Inverse noise of the saturation, normalised to a median of 1 (float32, new array).
+
+    ``S = 1 - min/max`` with ``max = V`` and ``min = V (1 - S)``; first-order propagation:
+    ``Var[S] = (Var[min] + (1 - S)^2 Var[max]) / V^2``. With Poisson counts and no offset
+    this is ``G (1 - S)(2 - S) / V``; over a black level in the dark it is about
+    ``2 sigma_e^2 / V^2``, far smaller than a ``1/V`` law scaled from the screen would say.
+    """
+    one_minus_s = np.subtract(_FLOAT(1.0), s, dtype=_FLOAT)
+    np.clip(one_minus_s, _FLOAT(0.0), _FLOAT(1.0), out=one_minus_s)
+    minimum = np.multiply(v, one_minus_s, dtype=_FLOAT)
+    var_total = _count_variance(minimum, model)
+    del minimum
+    one_minus_s *= one_minus_s
+    one_minus_s *= var_v
+    var_total += one_minus_s
+    del one_minus_s
+    weight = np.sqrt(var_total, out=var_total)
+    np.divide(np.maximum(v, _FLOAT(0.0)), weight, out=weight)
+    weight /= max(float(np.median(weight[::7, ::7])), 1e-12)
+    return weight
 
 
 def rgb_to_hsv_counts(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -797,24 +963,46 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
                                             photon_counting=True, bright_only=params.bright_only,
                                             in_place=True)
     _store("V", mask_v, model_v, True)
-    # S and H are ratios of photon counts: their noise falls as 1/sqrt(V) (S) and
-    # 1/(S sqrt(V)) (H). Residuals are weighted by the inverse of that factor (normalised to
-    # a median of 1), so that one constant Gaussian variance fits the whole image.
-    root_v = np.sqrt(np.maximum(v_new, 0.0) + 1e-12, dtype=_FLOAT)
-    weight_s = root_v / max(float(np.median(root_v[::7, ::7])), 1e-12)
+    # S and H are ratios of photon counts. Their noise follows from that of the counts,
+    # Var[c] = G (c - o) + sigma_e^2 (V's fitted model, read-noise floor included; see
+    # _ratio_noise_weights). Residuals are weighted by the inverse of that noise (normalised
+    # to a median of 1), so that one constant Gaussian variance fits the whole image, the
+    # dark surround of the screen (read noise over a black level) included.
+    # The weights use 3x3 medians of S and V: a pixel's own noise must not set its own
+    # weight (a count low by chance raises S and would also raise its weight).
+    v_local = _median3(v_new)
+    var_v = _count_variance(v_local, model_v)
+    s_local = _median3(s)
+    weight_s = _saturation_weight(s_local, v_local, var_v, model_v)
+    # The first-order propagation holds where max - min is well above its noise; in the
+    # unsaturated dark surround S is the range of three nearly equal noisy counts and the
+    # weighted residual is narrower there. The constant variance is fitted where S is
+    # defined (as for hue), so that the screen's variance is not underestimated.
+    s_defined = s_local >= _FLOAT(params.min_saturation)
+    del s_local
     s_new, mask_s, model_s = _clean_channel(s, passes=params.passes_s, params=params,
                                             photon_counting=False, bright_only=False, value_range=1.0,
-                                            residual_weight=weight_s, in_place=True)
+                                            residual_weight=weight_s, in_place=True,
+                                            fit_region=s_defined)
+    del s_defined
     _store("S", mask_s, model_s, False)
     del weight_s
     hue_valid = (s_new >= params.min_saturation) & (v_new >= params.min_value_fraction * v_top)
+    # A hue is tested against the hues of its detection samples, so they must be defined too:
+    # a pixel just above the saturation cut in the dark surround would otherwise be compared
+    # with the random hues of its unsaturated neighbours.
+    hue_valid = _erode(hue_valid, params.window_px)
     hue_mode = dominant_hue(h, hue_valid)
     h_rot = h
     h_rot += _FLOAT(0.5 - hue_mode)
     h_rot -= np.floor(h_rot)
-    weight_h = root_v
+    # Hue noise: sqrt(Var[V]) / (V S) (the hexcone hue is a difference of two channels over
+    # max - min = V S).
+    weight_h = np.sqrt(var_v, out=var_v)
+    np.divide(v_local, weight_h, out=weight_h)
+    del v_local
     weight_h *= s_new
-    del root_v
+    del var_v
     typical = weight_h[::7, ::7][hue_valid[::7, ::7]]
     weight_h /= max(float(np.median(typical)) if typical.size else 1.0, 1e-12)
     h_new, mask_h, model_h = _clean_channel(h_rot, passes=params.passes_h, params=params,
