@@ -96,3 +96,20 @@ def test_niqa_banding_removed_down_to_the_noise_floor(shared_data):
     # One frame's row means are noise-limited, so ~6.5x is the ceiling here (see the report).
     assert np.median(factors) > 5.0, factors
     assert residual < 1.25 * noise_floor, (residual, noise_floor)
+
+
+def test_flat_pulse_detection_precision_and_recall_against_phantom_truth():
+    from napari_dslrxr.core.flatfield import prepare_flat_reference
+    from napari_dslrxr.core.phantom import make_dslr_radiograph
+
+    frames = make_dslr_radiograph((400, 600), seed=3)
+    truth = frames.truth.flat_pulse_mask
+    cleaned, n = remove_bright_pulses(frames.flat, offset_counts=frames.black_level)
+    flagged = cleaned != frames.flat.astype(np.float32)
+    hits = np.count_nonzero(flagged & truth)
+    precision, recall = hits / np.count_nonzero(flagged), hits / np.count_nonzero(truth)
+    # measured 0.92 / 1.00 (previous sqrt(level) model + blind 3x3 dilation: 0.05 / 1.00 on 600x900 seed 0)
+    assert precision > 0.85 and recall > 0.98, (precision, recall)
+    # the reference builder passes the dark offset: same count on the flat (the dark adds a few)
+    reference = prepare_flat_reference(frames.flat.shape, flats=[frames.flat], darks=[frames.dark])
+    assert reference.cleaned_pulses < 1.3 * np.count_nonzero(truth)

@@ -89,19 +89,31 @@ class FlatReference:
     cleaned_pulses: int = 0
 
 
-def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0) -> tuple[np.ndarray, int]:
+def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0,
+                         offset_counts=0.0) -> tuple[np.ndarray, int]:
     """Replace bright impulsive pixels of a reference frame by their 5x5 median.
 
-    A switching median for flat and dark frames: the noise scale is the median absolute
-    residual scaled by ``sqrt(median level)`` (photon noise), so the test is valid over the
-    whole frame; flagged pixels are dilated by one pixel (pulses spread over neighbours).
+    A switching median for flat and dark frames. With ``m`` the 5x5 median and ``r = x - m``
+    the residual, the noise model is photon noise on the signal above the dark offset plus a
+    constant (read noise)::
+
+        var(r) = a + b * max(m - offset, 0)
+
+    ``b`` from the pixels above a quarter of the brightest level (robust: 1.4826 MAD of
+    ``r / sqrt(m - offset)``), ``a`` from the darkest pixels (1.4826 MAD of ``r``; ``b`` x 1
+    count when the frame has no dark area). A pixel is a pulse when ``r > k sqrt(var)``
+    (``k = threshold_sigma``); its 8 neighbours join it when ``r > 3 sqrt(var)`` (pulses
+    cover 1 to 5 pixels; a blind dilation would take the noise around them as well).
 
     Parameters
     ----------
-    frame : ndarray, float32, (H, W) or (H, W, C)
+    frame : ndarray, float32 or uint16, (H, W) or (H, W, C)
         Linear counts.
     threshold_sigma : float
         Detection threshold in noise standard deviations.
+    offset_counts : float or sequence of float
+        Dark offset (counts, per channel or one for all) under the signal: the photon noise
+        grows with ``m - offset``, not with ``m``.
 
     Returns
     -------
@@ -114,63 +126,63 @@ def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0) -> tup
     if arr.dtype not in (np.uint16, np.float32):
         arr = arr.astype(np.float32)
     arr = np.ascontiguousarray(arr)
-    # whole-array operations (all channels at once): per-channel strided slices are slow
     if arr.ndim == 3 and arr.shape[2] not in (1, 3, 4):
         raise InputError("reference frame", f"unsupported channel count {arr.shape[2]}")
-    med = cv2.medianBlur(arr, 5)  # native dtype: uint16 is about twice as fast as float32
-    if med.ndim < arr.ndim:
-        med = med[..., None]
-    if arr.dtype == np.uint16:
-        return _remove_bright_pulses_u16(arr, med, threshold_sigma)
+    # whole-array median (all channels at once), native dtype: uint16 is about twice as fast
+    med = cv2.medianBlur(arr, 5)
+    arr3 = arr if arr.ndim == 3 else arr[..., None]
+    med = med.reshape(arr3.shape)
+    n_channels = arr3.shape[2]
+    offsets = np.broadcast_to(np.asarray(offset_counts, np.float64).reshape(-1), (n_channels,))
+    step = max(1, int(np.sqrt(arr3.shape[0] * arr3.shape[1] / 250_000)))
+    high = np.empty(arr3.shape, bool)
+    low = np.empty(arr3.shape, bool)
+    for c in range(n_channels):
+        a, b = _pulse_noise_model(arr3[::step, ::step, c], med[::step, ::step, c], offsets[c])
+        if arr.dtype == np.uint16:
+            # thresholds tabulated over all 65536 median levels: the full-size work stays uint16
+            levels = np.arange(65536, dtype=np.float64)
+            sd = np.sqrt(a + b * np.maximum(levels - offsets[c], 0.0))
+            for out, k in ((high, threshold_sigma), (low, 3.0)):
+                table = np.floor(np.minimum(levels + k * sd, 65535)).astype(np.uint16)
+                out[..., c] = arr3[..., c] > table[med[..., c]]
+        else:
+            m = med[..., c].astype(np.float32)
+            sd = np.maximum(m - np.float32(offsets[c]), 0)
+            sd *= np.float32(b)
+            sd += np.float32(a)
+            np.sqrt(sd, out=sd)
+            residual = arr3[..., c] - m
+            high[..., c] = residual > np.float32(threshold_sigma) * sd
+            low[..., c] = residual > 3.0 * sd
+    grown = cv2.dilate(high.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool).reshape(high.shape)
+    pulses = high | (grown & low)
+    pulses = pulses.reshape(arr.shape)
     values = arr.astype(np.float32)
-    med = med.astype(np.float32)
-    residual = values - med
-    # photon noise grows with the level (the offset only adds a constant): scale by sqrt(level)
-    noise_scale = np.maximum(med, 1.0)
-    np.sqrt(noise_scale, out=noise_scale)
-    step = max(1, int(np.sqrt(residual.shape[0] * residual.shape[1] / 250_000)))
-    scaled = residual[::step, ::step] / noise_scale[::step, ::step]
-    if scaled.ndim == 3:
-        centre = np.median(scaled, axis=(0, 1))
-        sigma = 1.4826 * np.median(np.abs(scaled - centre), axis=(0, 1)) + 1e-12
-    else:
-        sigma = 1.4826 * float(np.median(np.abs(scaled - np.median(scaled)))) + 1e-12
-    noise_scale *= np.asarray(threshold_sigma * sigma, np.float32)
-    pulses = residual > noise_scale
-    del noise_scale
-    pulses = cv2.dilate(pulses.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool).reshape(residual.shape)
-    pulses &= residual > 0
-    np.copyto(values, med, where=pulses)
+    np.copyto(values, med.reshape(arr.shape), where=pulses)
     return values, int(np.count_nonzero(pulses))
 
 
-def _remove_bright_pulses_u16(arr: np.ndarray, med: np.ndarray, threshold_sigma: float) -> tuple[np.ndarray, int]:
-    """uint16 path of :func:`remove_bright_pulses`: thresholds from a look-up table of the median.
-
-    The test ``x > m + k sigma sqrt(m)`` is evaluated as ``x > T[m]`` with ``T`` tabulated over
-    all 65536 levels (per channel), so the full-size work stays in uint16.
-    """
-    step = max(1, int(np.sqrt(arr.shape[0] * arr.shape[1] / 250_000)))
-    a_sub = arr[::step, ::step].astype(np.float32)
-    m_sub = med[::step, ::step].astype(np.float32)
-    scaled = (a_sub - m_sub) / np.sqrt(np.maximum(m_sub, 1.0))
-    levels = np.arange(65536, dtype=np.float64)
-    values = arr.copy()
-    n_channels = arr.shape[2] if arr.ndim == 3 else 1
-    pulses = np.empty(arr.shape, bool)
-    for c in range(n_channels):
-        sc = scaled[..., c] if arr.ndim == 3 else scaled
-        sigma = 1.4826 * float(np.median(np.abs(sc - np.median(sc)))) + 1e-12
-        table = np.minimum(levels + threshold_sigma * sigma * np.sqrt(np.maximum(levels, 1.0)), 65535)
-        table = np.floor(table).astype(np.uint16)
-        if arr.ndim == 3:
-            pulses[..., c] = arr[..., c] > table[med[..., c]]
-        else:
-            pulses[...] = arr > table[med]
-    pulses = cv2.dilate(pulses.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool).reshape(arr.shape)
-    pulses &= arr > med
-    np.copyto(values, med, where=pulses)
-    return values.astype(np.float32), int(np.count_nonzero(pulses))
+def _pulse_noise_model(values: np.ndarray, median: np.ndarray, offset: float) -> tuple[float, float]:
+    """``(a, b)`` of ``var(x - m) = a + b max(m - offset, 0)`` from a subsample (robust)."""
+    x = values.astype(np.float64).ravel()
+    m = median.astype(np.float64).ravel()
+    signal = np.maximum(m - offset, 0.0)
+    residual = x - m
+    top = float(np.percentile(signal, 99.5))
+    bright = signal > 0.25 * top
+    if top > 0 and np.count_nonzero(bright) > 100:
+        scaled = residual[bright] / np.sqrt(signal[bright])
+        b = (1.4826 * float(np.median(np.abs(scaled - np.median(scaled))))) ** 2
+    else:
+        b = 0.0
+    dark = signal < 0.05 * top if top > 0 else np.ones(signal.shape, bool)
+    if np.count_nonzero(dark) > 100:
+        r = residual[dark]
+        a = (1.4826 * float(np.median(np.abs(r - np.median(r))))) ** 2
+    else:
+        a = b
+    return max(a, 1e-6), b
 
 
 def _as_float_frames(frames: Sequence[np.ndarray], what: str) -> list[np.ndarray]:
@@ -186,6 +198,15 @@ def _as_float_frames(frames: Sequence[np.ndarray], what: str) -> list[np.ndarray
     if len({a.shape for a in out}) > 1:
         raise InputError(what, f"frames differ in shape: {sorted({a.shape for a in out})}")
     return out
+
+
+def _channel_levels(offset) -> np.ndarray:
+    """Per-channel median of a dark frame or of per-channel offset values (counts)."""
+    arr = np.asarray(offset, np.float32)
+    if arr.ndim <= 1:
+        return arr.reshape(-1)
+    chans = arr.reshape(arr.shape[0], arr.shape[1], -1)[::4, ::4]
+    return np.median(chans.reshape(-1, chans.shape[-1]), axis=0)
 
 
 def _check_finite(arr: np.ndarray, what: str) -> None:
@@ -235,7 +256,8 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
             raise InputError("dark frame", f"shape {np.asarray(darks[0]).shape} differs from the radiograph's {tuple(shape)}")
         if len(darks) == 1 and params.clean_flat_pulses:
             _as_float_frames([darks[0][:1]], "dark frame")  # dtype check only
-            offset, n = remove_bright_pulses(darks[0], params.pulse_threshold_sigma)
+            offset, n = remove_bright_pulses(darks[0], params.pulse_threshold_sigma,
+                                             offset_counts=_channel_levels(darks[0]))
             _check_finite(offset, "dark frame")
             cleaned += n
         else:
@@ -258,13 +280,15 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
     n_flats = len(flats)
     if n_flats == 1 and params.clean_flat_pulses:
         _as_float_frames([flats[0][:1]], "flat frame")  # dtype check only
-        flat, n = remove_bright_pulses(flats[0], params.pulse_threshold_sigma)
+        flat, n = remove_bright_pulses(flats[0], params.pulse_threshold_sigma,
+                                       offset_counts=_channel_levels(offset))
         _check_finite(flat, "flat frame")
         cleaned += n
     else:
         flat = combine_frames(_as_float_frames(flats, "flat frame"))
         if n_flats == 2 and params.clean_flat_pulses:
-            flat, n = remove_bright_pulses(flat, params.pulse_threshold_sigma)
+            flat, n = remove_bright_pulses(flat, params.pulse_threshold_sigma,
+                                           offset_counts=_channel_levels(offset))
             cleaned += n
     denominator = flat - offset
     del flat

@@ -52,7 +52,7 @@ class PhantomTruth:
     clean_rgb : ndarray, float32, (H, W, 3)
         Expected signal (counts above black) before noise and pulses.
     pulse_mask : ndarray, bool, (H, W, 3)
-        Where pulses were added, per colour channel.
+        Where pulses were added to the radiograph, per colour channel.
     flat_patch_rc : tuple of int
         ``(r0, c0, r1, c1)`` of a patch in the frame where the object is uniform soft tissue
         (for noise measurements).
@@ -62,6 +62,8 @@ class PhantomTruth:
         Gaussian blur applied in the frame, pixels.
     camera_gain_counts_per_photon : float
         Counts per detected photon (the Poisson gain).
+    flat_pulse_mask : ndarray, bool, (H, W, 3) or None
+        Where pulses were added to the flat frame, per colour channel.
     """
 
     attenuation: np.ndarray
@@ -75,6 +77,7 @@ class PhantomTruth:
     homography: np.ndarray
     blur_sigma_px: float
     camera_gain_counts_per_photon: float
+    flat_pulse_mask: np.ndarray | None = None
 
 
 @dataclass
@@ -293,7 +296,7 @@ def make_dslr_radiograph(shape: tuple[int, int] = (600, 900), *, seed: int = 0,
     radiograph = sample(clean)
     pulse_mask = _add_pulses(radiograph, rng, pulse_rate, white_level)
     flat = sample(clean_flat)
-    _add_pulses(flat, rng, pulse_rate, white_level)
+    flat_pulse_mask = _add_pulses(flat, rng, pulse_rate, white_level)
     dark = rng.standard_normal((h, w, 3), dtype=np.float32) * np.float32(read_noise_counts)
 
     def to_u16(counts: np.ndarray) -> np.ndarray:
@@ -312,6 +315,7 @@ def make_dslr_radiograph(shape: tuple[int, int] = (600, 900), *, seed: int = 0,
         attenuation=mu, transmission=transmission, screen_corners_xy=corners,
         screen_mask=screen_cover > 0.5, gain_map=gain, clean_rgb=clean.astype(np.float32),
         pulse_mask=pulse_mask, flat_patch_rc=flat_patch, homography=homography,
-        blur_sigma_px=float(blur_sigma_px), camera_gain_counts_per_photon=float(camera_gain))
+        blur_sigma_px=float(blur_sigma_px), camera_gain_counts_per_photon=float(camera_gain),
+        flat_pulse_mask=flat_pulse_mask)
     return PhantomFrames(raw_rgb=to_u16(radiograph), flat=to_u16(flat), dark=to_u16(dark),
                          black_level=float(black_level), white_level=int(white_level), truth=truth)
