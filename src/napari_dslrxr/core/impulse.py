@@ -16,11 +16,15 @@ The samples are the 8 neighbours (``window_px`` 3) or, by default, the 8 pixels 
 away (``window_px`` 5, a sparse 5x5 window: a patch of up to 3x3 px holds none of them).
 
 * photon-counting channels (grey images, V, raw CFA planes):
-  ``s^2(m) = a m + b`` with ``a = k G`` (``G`` the Poisson gain in counts per photon-electron,
-  ``k`` the variance of ``x - median`` relative to that of ``x``) and ``b`` absorbing the
-  offset and read noise;
+  ``s^2(m) = max(a m + b, floor)`` with ``a = k G`` (``G`` the Poisson gain in counts per
+  photon-electron, ``k`` the variance of ``x - median`` relative to that of ``x``), ``b``
+  absorbing the offset and read noise (``b = k (sigma_e^2 - G o)``), and ``floor`` the
+  residual variance measured where the image is darkest: ``k (G (m - o) + sigma_e^2)`` never
+  falls below the read-noise term, while the line crosses zero near the black level;
 * ratio channels (H, S): a constant variance ``s^2 = b`` of the residual weighted by the
-  known noise scaling of the channel (S: sqrt(V), H: S sqrt(V));
+  inverse of the channel's noise, propagated from the count variance of V's model at the
+  3x3 medians of S and V (S: ``sqrt(Var[min] + (1-S)^2 Var[max]) / V``, H:
+  ``sqrt(Var[V]) / (V S)``); S's variance is fitted where S is defined (S >= min_saturation);
 * pulses: uniform over the channel's value range ``V`` (``u = 1/V`` for bright-only pulses,
   ``1/(2V)`` for pulses of either sign).
 
@@ -32,6 +36,13 @@ re-tested, with a higher prior ``neighbour_prior``, against the median of their 
 neighbours in a 7x7 or larger window, repeatedly, so larger patches and tracks are grown
 from their rim inward. Detected pixels are replaced by the median of the non-pulse pixels of
 the smallest window (3x3 up to 9x9) that holds enough of them.
+
+Structure guards (edges and corners of the screen are not pulses): a seed's residual
+variance is at least (spread / 3)^2, the spread being that of the square ring of pixels at
+``max_patch_px`` from it (outside any patch); a grown pixel's is at least the spread of its
+window's background, whose exclusions are made point-symmetric so that the median stays
+unbiased on a ramp. Hue pixels are tested only where the whole detection window has a
+defined hue.
 
 Speed: a full-image prefilter with OpenCV medians (centre included) picks candidates; the
 exact test runs on them only; later passes re-test only the neighbourhood of replaced
@@ -109,7 +120,8 @@ class ImpulseParams:
         with the 8 pixels two steps away (a sparse 5x5 window), which finds patches up to
         3x3 px directly; larger ones are grown from their rim.
     max_patch_px : int
-        Largest pulse patch side (px) to grow into, 1 to 8; sets the number of growth rounds.
+        Largest pulse patch side (px) to grow into, 1 to 8; sets the number of growth rounds
+        and the distance of the ring whose spread measures the background structure.
     bright_only : bool
         Pulses on photon-counting channels (grey, V, CFA) are bright only (direct X-ray hits
         on the sensor). H and S pulses are always two-sided.
@@ -124,8 +136,9 @@ class ImpulseParams:
     posterior_threshold : float
         A pixel is a pulse when its posterior pulse probability exceeds this (0 < t < 1).
     min_saturation : float
-        Pixels with saturation below this (0 to 1) are left out of hue filtering: their hue
-        is undefined.
+        Pixels with saturation below this (0 to 1), or next to such pixels (within the
+        detection window), are left out of hue filtering: their hue is undefined. The
+        saturation noise is fitted where S is at least this.
     min_value_fraction : float
         Pixels with V below this fraction of the 99th percentile of V are left out of hue
         filtering (0 to 1).
@@ -861,26 +874,30 @@ def _count_variance(values: np.ndarray, model: "_NoiseModel | None") -> np.ndarr
     return out
 
 
-def _saturation_weight(s: np.ndarray, v: np.ndarray, var_v: np.ndarray,
-                       model: "_NoiseModel | None") -> np.ndarray:
+def _saturation_weight(s: np.ndarray, v: np.ndarray, model: "_NoiseModel | None") -> np.ndarray:
     """Inverse noise of the saturation, normalised to a median of 1 (float32, new array).
 
     ``S = 1 - min/max`` with ``max = V`` and ``min = V (1 - S)``; first-order propagation:
-    ``Var[S] = (Var[min] + (1 - S)^2 Var[max]) / V^2``. With Poisson counts and no offset
-    this is ``G (1 - S)(2 - S) / V``; over a black level in the dark it is about
+    ``Var[S] = (Var[min] + (1 - S)^2 Var[max]) / V^2`` with the count variances of
+    :func:`_count_variance`. With Poisson counts and no offset this is
+    ``G (1 - S)(2 - S) / V``; over a black level in the dark it is about
     ``2 sigma_e^2 / V^2``, far smaller than a ``1/V`` law scaled from the screen would say.
+    Computed in blocks of rows (bounded temporaries on 24 Mpx frames).
     """
-    one_minus_s = np.subtract(_FLOAT(1.0), s, dtype=_FLOAT)
-    np.clip(one_minus_s, _FLOAT(0.0), _FLOAT(1.0), out=one_minus_s)
-    minimum = np.multiply(v, one_minus_s, dtype=_FLOAT)
-    var_total = _count_variance(minimum, model)
-    del minimum
-    one_minus_s *= one_minus_s
-    one_minus_s *= var_v
-    var_total += one_minus_s
-    del one_minus_s
-    weight = np.sqrt(var_total, out=var_total)
-    np.divide(np.maximum(v, _FLOAT(0.0)), weight, out=weight)
+    height, width = s.shape
+    weight = np.empty((height, width), _FLOAT)
+    rows_per_block = max(1, (1 << 20) // max(width, 1))
+    for r0 in range(0, height, rows_per_block):
+        r1 = min(height, r0 + rows_per_block)
+        v_block = v[r0:r1]
+        one_minus_s = np.subtract(_FLOAT(1.0), s[r0:r1], dtype=_FLOAT)
+        np.clip(one_minus_s, _FLOAT(0.0), _FLOAT(1.0), out=one_minus_s)
+        var_total = _count_variance(v_block * one_minus_s, model)
+        one_minus_s *= one_minus_s
+        one_minus_s *= _count_variance(v_block, model)
+        var_total += one_minus_s
+        np.sqrt(var_total, out=var_total)
+        np.divide(np.maximum(v_block, _FLOAT(0.0)), var_total, out=weight[r0:r1])
     weight /= max(float(np.median(weight[::7, ::7])), 1e-12)
     return weight
 
@@ -965,15 +982,15 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     _store("V", mask_v, model_v, True)
     # S and H are ratios of photon counts. Their noise follows from that of the counts,
     # Var[c] = G (c - o) + sigma_e^2 (V's fitted model, read-noise floor included; see
-    # _ratio_noise_weights). Residuals are weighted by the inverse of that noise (normalised
+    # _count_variance and _saturation_weight). Residuals are weighted by the inverse of that noise (normalised
     # to a median of 1), so that one constant Gaussian variance fits the whole image, the
     # dark surround of the screen (read noise over a black level) included.
     # The weights use 3x3 medians of S and V: a pixel's own noise must not set its own
     # weight (a count low by chance raises S and would also raise its weight).
     v_local = _median3(v_new)
-    var_v = _count_variance(v_local, model_v)
     s_local = _median3(s)
-    weight_s = _saturation_weight(s_local, v_local, var_v, model_v)
+    weight_s = _saturation_weight(s_local, v_local, model_v)
+    del v_local  # recomputed for the hue (memory: 24 Mpx frames)
     # The first-order propagation holds where max - min is well above its noise; in the
     # unsaturated dark surround S is the range of three nearly equal noisy counts and the
     # weighted residual is narrower there. The constant variance is fitted where S is
@@ -998,11 +1015,12 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     h_rot -= np.floor(h_rot)
     # Hue noise: sqrt(Var[V]) / (V S) (the hexcone hue is a difference of two channels over
     # max - min = V S).
-    weight_h = np.sqrt(var_v, out=var_v)
+    v_local = _median3(v_new)
+    weight_h = _count_variance(v_local, model_v)
+    np.sqrt(weight_h, out=weight_h)
     np.divide(v_local, weight_h, out=weight_h)
     del v_local
     weight_h *= s_new
-    del var_v
     typical = weight_h[::7, ::7][hue_valid[::7, ::7]]
     weight_h /= max(float(np.median(typical)) if typical.size else 1.0, 1e-12)
     h_new, mask_h, model_h = _clean_channel(h_rot, passes=params.passes_h, params=params,
