@@ -38,8 +38,9 @@ from their rim inward. Detected pixels are replaced by the median of the non-pul
 the smallest window (3x3 up to 9x9) that holds enough of them.
 
 Structure guards (edges and corners of the screen are not pulses): a seed's residual
-variance is at least (spread / 3)^2, the spread being that of the square ring of pixels at
-``max_patch_px`` from it (outside any patch); a grown pixel's is at least the spread of its
+variance is at least (spread / 3)^2, the spread being that of the means of point-symmetric
+pixel pairs on the square ring at ``max_patch_px`` from it (outside any patch; a linear
+ramp does not spread them, an edge's shoulder or a corner does); a grown pixel's is at least the spread of its
 window's background, whose exclusions are made point-symmetric so that the median stays
 unbiased on a ramp. Hue pixels are tested only where the whole detection window has a
 defined hue.
@@ -322,19 +323,25 @@ def _ring_median_at(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: 
 
 
 def _square_ring_spread(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, radius_px: int) -> np.ndarray:
-    """Spread of the pixels at Chebyshev distance ``radius_px`` around each pixel (float64).
+    """Curvature-and-noise spread of the ring at Chebyshev distance ``radius_px`` (float64).
 
-    (q3 - q1)/1.349 of the ``8 radius_px`` pixels of the square ring (border replicated): the
-    noise on a smooth background, far more across an edge or at a corner of the screen.
+    The ``8 radius_px`` pixels of the square ring (border replicated) form ``4 radius_px``
+    point-symmetric pairs; sqrt(2) (q3 - q1)/1.349 of the pair means is the pixel noise on a
+    smooth background or a linear ramp, far more at the shoulder of a sharp edge or at a
+    corner of the screen.
     """
     r = int(radius_px)
     dr, dc = _window_offsets(2 * r + 1)
     on_ring = np.maximum(np.abs(dr), np.abs(dc)) == r
     flat = _flat_indices(rows, cols, dr[on_ring], dc[on_ring], x.shape)
-    vals = np.ascontiguousarray(x).ravel()[flat]
-    vals.sort(axis=1)
-    n = vals.shape[1]
-    return (vals[:, (3 * (n - 1)) // 4].astype(np.float64) - vals[:, (n - 1) // 4]) / 1.349
+    vals = np.ascontiguousarray(x).ravel()[flat].astype(np.float64)
+    half = vals.shape[1] // 2
+    # Means of point-symmetric pairs (row-major ring: the mirror of k is n - 1 - k): on a
+    # linear ramp each equals the centre's value, so only curvature and noise spread them.
+    pairs = 0.5 * (vals[:, :half] + vals[:, ::-1][:, :half])
+    pairs.sort(axis=1)
+    n = half
+    return math.sqrt(2.0) * (pairs[:, (3 * (n - 1)) // 4] - pairs[:, (n - 1) // 4]) / 1.349
 
 
 def _flat_indices(rows: np.ndarray, cols: np.ndarray, dr: np.ndarray, dc: np.ndarray, shape) -> np.ndarray:
