@@ -1155,10 +1155,9 @@ def demosaic_cleaned_raw(path, cleaned_planes: np.ndarray, raw_frame) -> np.ndar
 
     Opens ``path`` again with rawpy, writes the cleaned values (plus each plane's black
     level, rounded, clipped to [0, white level]) into ``raw_image_visible`` where they
-    differ from the original planes, and post-processes with the options of
-    :func:`napari_dslrxr.core.io.read_raw` (camera white balance, camera colour space,
-    gamma 1, no auto-brightening, scaled by the white level, 16 bit). With unchanged planes
-    the result equals ``read_image(path).data`` (tested).
+    differ from the original planes, and demosaics with
+    :func:`napari_dslrxr.core.io.postprocess_linear`, as :func:`~napari_dslrxr.core.io.read_raw`
+    does. With unchanged planes the result equals ``read_image(path).data`` (tested).
 
     Parameters
     ----------
@@ -1175,6 +1174,8 @@ def demosaic_cleaned_raw(path, cleaned_planes: np.ndarray, raw_frame) -> np.ndar
         Linear RGB.
     """
     import rawpy
+
+    from .io import postprocess_linear
 
     cleaned = np.asarray(cleaned_planes)
     if cleaned.shape != raw_frame.cfa_planes.shape:
@@ -1193,9 +1194,7 @@ def demosaic_cleaned_raw(path, cleaned_planes: np.ndarray, raw_frame) -> np.ndar
                 values = np.clip(np.rint(plane[rows, cols].astype(np.float64) + float(black)), 0,
                                  raw_frame.white_level)
                 visible[2 * rows + r, 2 * cols + c] = values.astype(visible.dtype)
-            return raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16,
-                                   use_camera_wb=True, user_flip=0,
-                                   output_color=rawpy.ColorSpace.raw, adjust_maximum_thr=0.0)
+            return postprocess_linear(raw)
     except InputError:
         raise
     except Exception as exc:  # rawpy.LibRawError and friends

@@ -623,13 +623,7 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
                 pattern = np.asarray(raw.raw_colors_visible[:2, :2])
                 h2, w2 = mosaic.shape[0] // 2, mosaic.shape[1] // 2
                 planes, offsets, names, black = _split_cfa(path, mosaic[: 2 * h2, : 2 * w2], pattern, desc, black)
-            rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16,
-                                  use_camera_wb=True, user_flip=0,
-                                  output_color=rawpy.ColorSpace.raw,
-                                  # Scale by the file's white level, never by the data
-                                  # maximum (LibRaw's default 0.75 would make the scale
-                                  # depend on the content and break linearity across frames).
-                                  adjust_maximum_thr=0.0)
+            rgb = postprocess_linear(raw)
     except InputError:
         raise
     except MemoryError:
@@ -647,6 +641,28 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
         frame = RawFrame(planes, names, offsets, black, white, rgb, {})
     meta = {"white_level": white, "black_level": [float(b) for b in black], "cfa": desc}
     return LoadedImage(validate_image(rgb, path), path, "raw", meta, frame)
+
+
+def postprocess_linear(raw) -> np.ndarray:
+    """Demosaic an open ``rawpy.RawPy`` to linear 16-bit RGB, the one way this package does it.
+
+    Camera white balance and colour space (no matrix to sRGB, which would clip saturated
+    channels), gamma 1, no auto-brightening, scaled so the file's white level maps to 65535.
+    Callers that modify ``raw.raw_image_visible`` first (pulse cleaning on the CFA planes) get
+    exactly the demosaicing that :func:`read_raw` applies.
+
+    Returns
+    -------
+    ndarray, uint16, (H, W, 3)
+    """
+    import rawpy
+
+    return raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=True,
+                           user_flip=0, output_color=rawpy.ColorSpace.raw,
+                           # Scale by the file's white level, never by the data maximum
+                           # (LibRaw's default threshold 0.75 would make the scale depend on the
+                           # content and break linearity across frames).
+                           adjust_maximum_thr=0.0)
 
 
 def _split_cfa(path: Path, mosaic: np.ndarray, pattern: np.ndarray, desc: str,
