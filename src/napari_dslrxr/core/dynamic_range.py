@@ -123,7 +123,13 @@ def masked_lowpass(image: np.ndarray, mask: np.ndarray | None, size_px: int) -> 
 
 def edge_aware_lowpass(image: np.ndarray, mask: np.ndarray | None, sigma_px: float,
                        edge_step: float) -> np.ndarray:
-    """Mask-normalised edge-aware low-pass: ``DT(x * m) / DT(m)`` guided by the smoothed image.
+    """Edge-aware low-pass (domain transform) that ignores pixels outside ``mask``.
+
+    Outside the mask the image is first replaced by the mask-normalised plain low-pass of
+    the region (:func:`masked_lowpass`), a smooth continuation of the inside values, so the
+    outside neither leaks into the region nor forms an edge at the mask border; then one
+    domain-transform recursive filter pass set (``cv2.ximgproc.dtFilter``, three iterations)
+    runs, guided by the filled image smoothed by a Gaussian of 1 px.
 
     Parameters
     ----------
@@ -142,22 +148,13 @@ def edge_aware_lowpass(image: np.ndarray, mask: np.ndarray | None, sigma_px: flo
         Outside the mask the value extends the nearest region values.
     """
     x = np.ascontiguousarray(image, np.float32)
+    if mask is not None and not mask.all():
+        fill = masked_lowpass(x, mask, max(3, int(round(2 * sigma_px))))
+        x = np.where(mask, x, fill)
     guide = cv2.GaussianBlur(x, (0, 0), 1.0)
     # three iterations: one leaves visible stripes along the filter's scan directions
-    def smooth(values):
-        return cv2.ximgproc.dtFilter(guide, values, float(sigma_px), float(edge_step),
-                                     mode=cv2.ximgproc.DTF_RF, numIters=3)
-    if mask is None or mask.all():
-        return smooth(x).astype(np.float32, copy=False)
-    weight = mask.astype(np.float32)
-    num = smooth(x * weight)
-    den = smooth(weight)
-    valid = den > 1e-3
-    num /= np.maximum(den, 1e-6)
-    if not np.all(valid):
-        fill = float(np.median(num[valid])) if np.any(valid) else 0.0
-        num[~valid] = fill
-    return num
+    return cv2.ximgproc.dtFilter(guide, x, float(sigma_px), float(edge_step),
+                                 mode=cv2.ximgproc.DTF_RF, numIters=3).astype(np.float32, copy=False)
 
 
 def reduce_dynamic_range(image: np.ndarray, mask: np.ndarray | None = None,
