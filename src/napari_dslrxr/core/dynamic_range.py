@@ -14,8 +14,14 @@ low-pass is therefore edge-aware (the pitfall named in the notes, section 5): th
 Gastal-Oliveira domain-transform recursive filter (``cv2.ximgproc.dtFilter``, spatial sigma
 ``sigma_s``, range sigma ``edge_step``) smooths up to, never across, steps larger than
 ``edge_step``; those steps stay in ``x_L`` and are compressed by ``latitude`` without a halo.
-Its guide is the image smoothed by a Gaussian of 1 px so noise does not shorten the kernel.
+``sigma_s`` is half the box size ``kernel_fraction x short side`` (the plain blur's scale).
+Its guide is the image smoothed by a Gaussian of 1 px, so that pixel noise shortens the
+kernel less (in the domain transform every grey-level change lengthens the distance).
+Structure well below ``edge_step`` is detail (gain ``detail_gain``); between about a third
+of ``edge_step`` and ``edge_step`` it is partly kept in ``x_L`` and so partly compressed.
 ``edge_step = 0`` selects the plain blur (three box-filter passes, close to a Gaussian).
+Measured on a unit-free step of 1.2 (latitude 0.6): overshoot + undershoot / step 0.016
+edge-aware vs 0.59 with the plain blur (``tests/core/test_dynamic_range.py``).
 :func:`sigmoid_lut` is the final gradation curve mapping the processed values to the display
 range.
 """
