@@ -51,15 +51,21 @@ def test_latitude_and_bone_contrast_sliders(docked, phantom, wait_for_worker, er
     assert plain.shape == phantom.raw_rgb.shape[:2] and 0.0 <= plain.min() and plain.max() <= 1.0
     assert viewer.layers["frame contrast"].data is widget.result
     low_lat = _apply(widget, wait_for_worker, latitude=0.3)
-    bone = _apply(widget, wait_for_worker, latitude=1.0, bone_contrast=3.0)
+    # The phantom's structures are mostly strong edges, which the halo guard keeps at unit
+    # gain; with the guard off, bone contrast boosts them all.
+    bone = _apply(widget, wait_for_worker, latitude=1.0, bone_contrast=3.0, halo_step=0.0)
+    guarded = _apply(widget, wait_for_worker, halo_step=0.3)
     assert not errors_shown, errors_shown
     plain_low, plain_detail = _split(plain, inner)
     lat_low, _ = _split(low_lat, inner)
     _, bone_detail = _split(bone, inner)
+    _, guarded_detail = _split(guarded, inner)
     assert lat_low < 0.8 * plain_low  # latitude compresses large-area variation
     assert bone_detail > 1.3 * plain_detail  # bone contrast boosts mid-size structure
+    assert plain_detail < guarded_detail < bone_detail  # the guard holds back strong edges only
     params = widget.get_params()
     assert params["contrast"].bone_contrast == pytest.approx(3.0)
+    assert params["contrast"].halo_step == pytest.approx(0.3)
     assert params["dynamic_range"].latitude == pytest.approx(1.0)
 
 

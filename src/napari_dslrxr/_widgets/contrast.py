@@ -53,6 +53,7 @@ SLIDERS = (
     ("contrast", "detail_contrast", "detail contrast", 0.0, 1.0),
     ("contrast", "bone_contrast", "bone contrast", 0.5, 3.0),
     ("contrast", "edge_sharpness", "edge sharpness", 0.5, 3.0),
+    ("contrast", "halo_step", "halo guard (0 = off)", 0.0, 2.0),
 )
 
 
