@@ -24,3 +24,24 @@ def test_demo_writes_every_output(tmp_path, capsys):
     out = read_image(tmp_path / "radiograph_dslrxr.tif").data
     assert np.array_equal(ds.pixel_array, out)
     assert "wrote" in capsys.readouterr().out
+
+
+def test_demo_fits_the_frame_blur_and_deblurs_with_it(tmp_path, capsys):
+    from napari_dslrxr.core.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.psf import load_psf
+    from napari_dslrxr.demo import DEMO_SOURCE_TO_DETECTOR_MM, DEMO_SOURCE_TO_OBJECT_MM
+
+    assert main([str(tmp_path), "--small"]) == 0
+    model = load_psf(tmp_path / "psf.json")
+    # The edges carry the phantom's Gaussian blur: the fitted kernel must have its width.
+    sigma_px = make_dslr_radiograph((64, 64)).truth.blur_sigma_px
+    kernel = model.kernel(DEMO_SOURCE_TO_OBJECT_MM, DEMO_SOURCE_TO_DETECTOR_MM).astype(np.float64)
+    r = np.arange(kernel.shape[0]) - kernel.shape[0] // 2
+    variance = float((kernel.sum(axis=0) * r**2).sum())
+    assert abs(np.sqrt(variance) - sigma_px) < 0.1 * sigma_px
+    side = json.loads((tmp_path / "radiograph_dslrxr.tif.json").read_text())
+    assert side["results"]["deblur"]["method"] == "adaptive"
+    assert len(side["results"]["deblur"]["reg_used"]) == 3  # the auto value of each colour channel
+    assert side["results"]["run_options"] == {"source_to_object_mm": DEMO_SOURCE_TO_OBJECT_MM,
+                                              "source_to_detector_mm": DEMO_SOURCE_TO_DETECTOR_MM}
+    assert any(i["path"].endswith("psf.json") for i in side["inputs"])

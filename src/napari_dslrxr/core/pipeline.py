@@ -102,7 +102,7 @@ def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> 
 
 def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, params: PipelineParams,
                   results: dict) -> np.ndarray:
-    from .deconvolution import deconvolve
+    from .deconvolution import deconvolve, estimate_regularisation
 
     # scale each channel to about [0, 1] over the region (the solver's expected range)
     chans = colour if colour.ndim == 3 else colour[..., None]
@@ -115,8 +115,12 @@ def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, para
     out = deconvolve(normalised if colour.ndim == 3 else normalised[..., 0], kernel,
                      method=params.deblur.method, reg=params.deblur.reg)
     out = (out if out.ndim == 3 else out[..., None]) * scale
+    reg_used = params.deblur.reg
+    if reg_used == "auto":  # record the number chosen per channel, so the sidecar tells it
+        reg_used = [float(estimate_regularisation(normalised[..., c], kernel, params.deblur.method))
+                    for c in range(normalised.shape[2])]
     results["deblur"] = {"kernel_shape": list(kernel.shape), "method": params.deblur.method,
-                         "reg": params.deblur.reg}
+                         "reg": params.deblur.reg, "reg_used": reg_used}
     return out if colour.ndim == 3 else out[..., 0]
 
 
