@@ -6,13 +6,30 @@ is its own.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import resource
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 RESULTS = Path(__file__).resolve().parent / "results"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_test_module(relative_path: str, name: str) -> ModuleType:
+    """Import a test file (e.g. ``tests/core/test_impulse_realdata.py``) to reuse its protocol.
+
+    The evaluation scripts print the full figures for exactly what the tests assert, so they
+    share the test's data preparation instead of copying it.
+    """
+    spec = importlib.util.spec_from_file_location(name, ROOT / relative_path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def best_time(fn: Callable[[], object], repeat: int = 3) -> float:

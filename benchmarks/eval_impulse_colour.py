@@ -12,23 +12,17 @@ Run: .venv/bin/python benchmarks/eval_impulse_colour.py [--figure out.png]
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _harness import load_test_module
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _helpers():
-    spec = importlib.util.spec_from_file_location("impulse_realdata", ROOT / "tests/core/test_impulse_realdata.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["impulse_realdata"] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def main() -> None:
@@ -41,7 +35,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--figure", type=Path)
     args = parser.parse_args()
-    helpers = _helpers()
+    helpers = load_test_module("tests/core/test_impulse_realdata.py", "impulse_realdata")
     data = Path(os.environ.get("DSLRXR_DATA", ROOT.parent / "shared" / "data"))
     rng = np.random.default_rng(20261122)  # the tests' seed
     radiograph = read_image(data / "cr_dicom" / "RG1_UNCR.dcm").data[700:1212, 600:1112].astype(np.float64)

@@ -8,23 +8,17 @@ remaining pixels for remove_impulses and for 3x3 and 5x5 median filters.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _harness import load_test_module
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _protocol():
-    spec = importlib.util.spec_from_file_location("niqa_protocol", ROOT / "tests/core/test_impulse_realdata.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["niqa_protocol"] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def main() -> None:
@@ -35,7 +29,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--figure", type=Path)
     args = parser.parse_args()
-    proto = _protocol()
+    proto = load_test_module("tests/core/test_impulse_realdata.py", "niqa_protocol")
     folder = Path(os.environ.get("DSLRXR_DATA", ROOT.parent / "shared" / "data")) / "niqa_edge"
     data = proto.load_niqa(folder)
     print(f"dark level {data.dark_level:.1f}; scales {np.round(data.scales, 3).tolist()}; "

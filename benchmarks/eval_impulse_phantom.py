@@ -12,22 +12,12 @@ Run: .venv/bin/python benchmarks/eval_impulse_phantom.py
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from _harness import load_test_module
 
-
-def _test_helpers():
-    spec = importlib.util.spec_from_file_location("impulse_tests", ROOT / "tests/core/test_impulse.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["impulse_tests"] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def main() -> None:
@@ -38,7 +28,7 @@ def main() -> None:
 
     shape, seed = (480, 720), 0
     frames = make_dslr_radiograph(shape, seed=seed)
-    injected, truth = _test_helpers()._phantom_channel_truth(
+    injected, truth = load_test_module("tests/core/test_impulse.py", "impulse_tests")._phantom_channel_truth(
         frames, make_dslr_radiograph(shape, seed=seed, pulse_rate=0.0))
     screen = frames.truth.screen_mask
     dark = ndi.distance_transform_edt(~screen) > 3 * frames.truth.blur_sigma_px
