@@ -58,13 +58,15 @@ from .physics_terms import LIBRARY, ChainGrid, ChainState, PhysicsTerm, _gauss_t
     _inverse_spectrum, _padded_spectrum, get_term, validate_params
 
 # Mass attenuation coefficients mu/rho (cm^2/g, with coherent scattering) at 20..100 keV, from the
-# NIST XCOM / Hubbell & Seltzer tables (NISTIR 5632), rounded; densities in g/cm^3.
+# NIST XCOM / Hubbell & Seltzer tables (NISTIR 5632), rounded; densities in g/cm^3. Checked against
+# xraylib 4.3 (elements; NIST compositions by the mixture rule): aluminium, copper and water agree
+# to 0.1 %; PMMA is the mixture-rule value for C5H8O2; bone is NIST's cortical bone (ICRU-44).
 _ENERGIES_KEV = np.array([20.0, 30.0, 40.0, 50.0, 60.0, 80.0, 100.0])
 MATERIALS: dict[str, tuple[float, tuple[float, ...]]] = {
     "aluminium": (2.699, (3.441, 1.128, 0.5685, 0.3681, 0.2778, 0.2018, 0.1704)),
     "copper": (8.96, (33.79, 10.92, 4.862, 2.613, 1.593, 0.7630, 0.4584)),
     "water": (1.0, (0.8096, 0.3756, 0.2683, 0.2269, 0.2059, 0.1837, 0.1707)),
-    "pmma": (1.19, (0.6448, 0.3235, 0.2437, 0.2139, 0.1957, 0.1768, 0.1647)),
+    "pmma": (1.19, (0.5714, 0.3032, 0.2350, 0.2074, 0.1924, 0.1751, 0.1641)),
     "bone": (1.92, (4.001, 1.331, 0.6655, 0.4242, 0.3148, 0.2229, 0.1855)),
 }
 _MATERIAL_ALIASES = {"aluminum": "aluminium", "al": "aluminium", "cu": "copper", "acrylic": "pmma",
