@@ -320,6 +320,20 @@ def save_figure(name, images, rows, band, truth):
 
 
 def main() -> int:
+    global PSF, DOCS
+    import argparse
+    import dataclasses
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--detector-core-mm", type=float, default=None,
+                        help="detector core FWHM (mm) instead of 0.25; results get a suffix and the "
+                             "figures go to benchmarks/results/ (docs/ keeps the default case)")
+    args = parser.parse_args()
+    suffix = ""
+    if args.detector_core_mm is not None:
+        PSF = dataclasses.replace(PSF, detector_fwhm_core_mm=args.detector_core_mm)
+        suffix = f"_core{args.detector_core_mm:g}mm"
+        DOCS = RESULTS
     kernel = PSF.kernel(*GEOMETRY_MM)
     rng = np.random.default_rng(SEED)
     results = {"kernel_shape": list(kernel.shape), "psf": PSF.to_dict(), "geometry_mm": GEOMETRY_MM,
@@ -367,8 +381,8 @@ def main() -> int:
     text = "\n".join(lines)
     print(text)
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "eval_deconvolution.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
-    (RESULTS / "eval_deconvolution.txt").write_text(text + "\n")
+    (RESULTS / f"eval_deconvolution{suffix}.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
+    (RESULTS / f"eval_deconvolution{suffix}.txt").write_text(text + "\n")
     return 0
 
 
