@@ -108,7 +108,7 @@ def test_scene_errors_are_one_line(tmp_path, scene_file):
     with pytest.raises(ParameterError, match="unknown effect"):
         load_scene(bad)
     bad.write_text("[geometry\n")
-    with pytest.raises(InputError, match="not a valid TOML"):
+    with pytest.raises(InputError, match="not valid TOML"):
         load_scene(bad)
 
 

@@ -973,19 +973,10 @@ def load_edge_config(path: str | os.PathLike) -> EdgeConfig:
         Missing file, bad TOML, missing or ill-typed key (message names the file and the key),
         or an unreadable image.
     """
-    import tomllib
-
-    from .io import read_image
+    from .io import read_image, read_structured_file
 
     config = Path(path)
-    try:
-        record = tomllib.loads(config.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(config, "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(config, f"cannot read: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(config, f"not valid TOML ({exc})") from None
+    record = read_structured_file(config, what="edge configuration")
     unknown_top = set(record) - {"pixel_pitch_mm", "shape_power", "edges"}
     if unknown_top:
         raise InputError(config, f"unknown key {sorted(unknown_top)[0]!r} (expected pixel_pitch_mm, "

@@ -643,6 +643,52 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
     return LoadedImage(validate_image(rgb, path), path, "raw", meta, frame)
 
 
+def read_structured_file(path: str | os.PathLike, *, what: str, fmt: str = "toml") -> dict:
+    """Read a TOML or JSON file into a dictionary.
+
+    Every text file the package reads (parameter file, scene, edge configuration, psf.json)
+    goes through here, so a missing, unreadable or malformed file gives the same one-line
+    :class:`InputError` naming the file.
+
+    Parameters
+    ----------
+    path : path-like
+    what : str
+        What the file is, for messages (e.g. ``"parameter file"``).
+    fmt : {"toml", "json"}
+
+    Returns
+    -------
+    dict
+        The parsed top-level table (the caller validates keys and values).
+    """
+    import json
+    import tomllib
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(path, f"{what} not found (no such file)") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read the {what} ({exc})") from None
+    if fmt == "json":
+        try:
+            record = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InputError(path, f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
+        except RecursionError:
+            raise InputError(path, "not valid JSON (nested too deeply)") from None
+    else:
+        try:
+            record = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(path, f"not valid TOML ({exc})") from None
+    if not isinstance(record, dict):
+        raise InputError(path, f"a {what} must hold a table of keys, got {type(record).__name__}")
+    return record
+
+
 def postprocess_linear(raw) -> np.ndarray:
     """Demosaic an open ``rawpy.RawPy`` to linear 16-bit RGB, the one way this package does it.
 

@@ -14,7 +14,6 @@ import dataclasses
 import difflib
 import math
 import os
-import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +22,7 @@ import tomli_w
 
 from .contrast import ContrastParams
 from .dynamic_range import DynamicRangeParams
-from .errors import ParameterError
+from .errors import InputError, ParameterError
 from .flatfield import FlatFieldParams
 from .region import RegionParams
 
@@ -262,17 +261,13 @@ def load_params(path: str | os.PathLike) -> PipelineParams:
     ParameterError
         Missing or unreadable file, TOML syntax error, unknown key, wrong type or range.
     """
+    from .io import read_structured_file
+
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ParameterError(f"{path}: parameter file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ParameterError(f"{path}: cannot read the parameter file ({exc})") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ParameterError(f"{path}: not valid TOML ({exc})") from None
+        data = read_structured_file(path, what="parameter file")
+    except InputError as exc:  # a parameter problem for the caller, whatever the file's fault
+        raise ParameterError(str(exc)) from None
     try:
         return params_from_dict(data)
     except ParameterError as exc:

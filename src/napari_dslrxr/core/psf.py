@@ -362,16 +362,11 @@ def load_psf(path: str | os.PathLike) -> PSFModel:
         When the file is missing, not JSON, not a PSF file, or a field is missing, ill-typed or
         out of range (the one-line message names the file and the key).
     """
+    from .io import read_structured_file
+
     path = Path(path)
-    try:
-        record = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(path, "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"cannot read: {exc}") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(path, f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(record, dict) or record.get("format") != PSF_FORMAT:
+    record = read_structured_file(path, what="PSF file", fmt="json")
+    if record.get("format") != PSF_FORMAT:
         raise InputError(path, f"not a PSF file (expected \"format\": \"{PSF_FORMAT}\")")
     if record.get("format_version") != PSF_FORMAT_VERSION:
         raise InputError(path, f"unsupported format_version {record.get('format_version')!r} "

@@ -46,7 +46,6 @@ Scene file (TOML)::
 from __future__ import annotations
 
 import os
-import tomllib
 from dataclasses import dataclass, field
 from difflib import get_close_matches
 from pathlib import Path
@@ -260,13 +259,10 @@ def parse_scene(table: dict, *, source: str = "scene", base_dir: str | os.PathLi
 
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and validate a scene TOML file (thickness path relative to the file)."""
+    from .io import read_structured_file
+
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "scene file not found")
-    try:
-        table = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not a valid TOML scene ({exc})") from None
+    table = read_structured_file(path, what="scene file")
     scene = parse_scene(table, source=str(path), base_dir=path.parent)
     scene.path = path
     return scene
