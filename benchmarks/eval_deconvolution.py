@@ -49,6 +49,7 @@ sys.path.insert(0, str(ROOT / "src"))
 
 from napari_dslrxr.core import deconvolution as dc  # noqa: E402
 from napari_dslrxr.core.io import read_image  # noqa: E402
+from napari_dslrxr.core.metrics import global_contrast_factor  # noqa: E402
 from napari_dslrxr.core.psf import PSFModel  # noqa: E402
 
 DATA = Path(os.environ.get("DSLRXR_DATA", ROOT.parent / "shared" / "data"))
@@ -104,43 +105,9 @@ def to_display8(x):
     return np.clip(np.round(np.asarray(x, np.float64) * 255.0), 0, 255).astype(np.uint8)
 
 
-def gcf_local(k8: np.ndarray) -> float:
-    """Global Contrast Factor per notes section 7.1 (local helper; no project metrics module yet)."""
-    import cv2
-
-    weights = [(-0.406385 * i / 9 + 0.334573) * i / 9 + 0.0877526 for i in range(1, 10)]
-    lin = (k8.astype(np.float32) / 255.0) ** 2.2
-    h, w = lin.shape
-    total = 0.0
-    for i, s in enumerate([1, 2, 4, 8, 16, 25, 50, 100, 200]):
-        if s == 1:
-            lev = lin
-        else:
-            lev = cv2.resize(lin, (max(1, round(w / s)), max(1, round(h / s))), interpolation=cv2.INTER_AREA)
-        big_l = 100.0 * np.sqrt(np.clip(lev, 0, None))
-        acc = np.zeros_like(big_l)
-        cnt = np.zeros_like(big_l)
-        dh = np.abs(np.diff(big_l, axis=1))
-        dv = np.abs(np.diff(big_l, axis=0))
-        acc[:, :-1] += dh
-        acc[:, 1:] += dh
-        cnt[:, :-1] += 1
-        cnt[:, 1:] += 1
-        acc[:-1] += dv
-        acc[1:] += dv
-        cnt[:-1] += 1
-        cnt[1:] += 1
-        lc = np.divide(acc, cnt, out=np.zeros_like(acc), where=cnt > 0)
-        total += weights[i] * float(lc.mean())
-    return total
-
-
-def gcf(x) -> tuple[float, str]:
-    try:
-        from napari_dslrxr.core.metrics import global_contrast_factor  # developer A's, when it exists
-    except ImportError:
-        return gcf_local(to_display8(x)), "local helper (notes 7.1)"
-    return float(global_contrast_factor(to_display8(x))), "core.metrics.global_contrast_factor"
+def gcf(x) -> float:
+    """GCF of the 8-bit display image (truth's [0, 1] range mapped to 0..255)."""
+    return global_contrast_factor(to_display8(x))
 
 
 def edge_band(truth: np.ndarray, width_px: int = 10) -> np.ndarray:
@@ -220,10 +187,8 @@ def run_case(name: str, rel: str, crop, kernel: np.ndarray, rng) -> dict:
     def add(label, x, seconds, extra=None):
         x = np.asarray(x, np.float64)
         o, u = overshoot(truth, x, band)
-        g, gcf_source = gcf(x)
-        rows[label] = {"psnr_db": psnr(truth, x), "ssim": ssim(truth, x), "gcf": g,
+        rows[label] = {"psnr_db": psnr(truth, x), "ssim": ssim(truth, x), "gcf": gcf(x),
                        "overshoot": o, "undershoot": u, "seconds": round(seconds, 3), **(extra or {})}
-        rows[label]["gcf_source"] = gcf_source
         images[label] = x
 
     add("truth", truth, 0.0)
