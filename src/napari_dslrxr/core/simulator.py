@@ -440,12 +440,6 @@ def simulate_recording(scene: Scene, *, effects: dict[str, dict[str, float]] | N
                                       "effects": all_effects}
 
 
-def noise_sigma_dn(scene: Scene, level_dn: float) -> float:
-    """Per-pixel noise standard deviation (DN) at expected level ``level_dn``."""
-    return float(np.sqrt(scene.poisson_gain_dn * max(level_dn - scene.offset_dn, 0.0)
-                         + scene.read_noise_dn**2))
-
-
 def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
     """Parse ``NAME=VALUE`` (main amplitude) or ``NAME=k1:v1,k2:v2`` into ``(name, params)``."""
     if "=" not in text:
