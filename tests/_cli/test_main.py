@@ -159,13 +159,6 @@ def test_library_warnings_do_not_reach_stderr(tmp_path, capsys, probe_commands):
     assert code == 0 and err == ""
 
 
-def _denoise_exists() -> bool:
-    import typer.main
-
-    return "denoise" in typer.main.get_command(cli.app).commands
-
-
-@pytest.mark.skipif(not _denoise_exists(), reason="'dslrxr denoise' has not landed yet")
 def test_denoise_bad_inputs_leave_no_partial_output(tmp_path, capsys, shared_data):
     for name, (path, phrase) in bad_inputs(tmp_path, shared_data).items():
         out = tmp_path / f"den_{name}.tif"

@@ -149,7 +149,6 @@ def test_real_process_prints_one_line_and_no_traceback(file_pool, tmp_path, name
     assert not any(p.suffix in (".tif", ".png") for p in (tmp_path / "o").glob("*")), "partial output"
 
 
-@pytest.mark.skipif("simulate" not in _COMMANDS, reason="'dslrxr simulate' (developer D) has not landed")
 def test_negative_seed_is_a_one_line_error(file_pool, tmp_path, capsys):
     """Found by fuzzing the command line: ``--seed -1`` ended in an internal error (exit 3)."""
     code = cli.main(["simulate", str(file_pool["scene.toml"]), "-o", str(tmp_path / "sim.tif"), "--seed", "-1"])

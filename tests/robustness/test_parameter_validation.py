@@ -10,8 +10,8 @@ import pytest
 
 from napari_dslrxr import cli
 
-params = pytest.importorskip("napari_dslrxr.core.params", reason="core/params.py (developer B) has not landed")
-from napari_dslrxr.core.errors import ParameterError  # noqa: E402
+from napari_dslrxr.core import params
+from napari_dslrxr.core.errors import ParameterError
 
 #: (TOML text, phrases the one-line message must contain).
 BAD_FILES = {
