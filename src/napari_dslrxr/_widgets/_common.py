@@ -168,12 +168,6 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
 # --------------------------------------------------------------------------- layers
 
 
-def layer_array(layer: napari.layers.Layer, *, dtype: type | None = np.float32) -> np.ndarray:
-    """The layer's data as an in-memory array (cast to ``dtype`` unless None)."""
-    data = np.asarray(layer.data)
-    return data if dtype is None else data.astype(dtype, copy=False)
-
-
 def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: str = "image",
                **kwargs: Any) -> napari.layers.Layer:
     """Update the layer called ``name`` in place (same type and ndim), or add it.
