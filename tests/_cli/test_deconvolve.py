@@ -11,6 +11,7 @@ from scipy import ndimage
 
 from napari_dslrxr.cli import main
 from napari_dslrxr.core import deconvolution as dc
+from napari_dslrxr.core.psf import PSFModel, save_psf
 
 
 def _scene(rng, n=96):
@@ -67,12 +68,11 @@ def test_numeric_reg_and_method(files, tmp_path):
 
 
 def test_psf_model_at_a_geometry(files, tmp_path):
-    psf_mod = pytest.importorskip("napari_dslrxr.core.psf")
     _, _, counts, image, _ = files
-    model = psf_mod.PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.2, source_fwhm_y_mm=0.3,
-                             detector_fwhm_core_mm=0.15, detector_fwhm_tail_mm=1.0, detector_weight_core=0.9)
+    model = PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.2, source_fwhm_y_mm=0.3,
+                     detector_fwhm_core_mm=0.15, detector_fwhm_tail_mm=1.0, detector_weight_core=0.9)
     psf_path = tmp_path / "psf.json"
-    psf_mod.save_psf(model, psf_path)
+    save_psf(model, psf_path)
     out = tmp_path / "p.tif"
     assert main(["deconvolve", str(image), "--psf", str(psf_path), "--source-to-object-mm", "500",
                  "--source-to-detector-mm", "600", "--method", "rls", "--reg", "100", "-o", str(out)]) == 0

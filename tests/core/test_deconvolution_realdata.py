@@ -16,6 +16,7 @@ from skimage import restoration
 
 from napari_dslrxr.core import deconvolution as dc
 from napari_dslrxr.core.io import read_image
+from napari_dslrxr.core.psf import PSFModel
 
 pytestmark = pytest.mark.realdata
 
@@ -28,12 +29,11 @@ def psnr(truth, x):
 
 @pytest.fixture(scope="module")
 def leg_case(shared_data):
-    psf = pytest.importorskip("napari_dslrxr.core.psf")
     full = read_image(shared_data / "cr_dicom" / "RG3_UNCR.dcm").data.astype(np.float64)
     full = (full - full.min()) / (full.max() - full.min())
-    kernel = psf.PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.6, source_fwhm_y_mm=0.6,
-                          detector_fwhm_core_mm=0.25, detector_fwhm_tail_mm=1.0,
-                          detector_weight_core=0.9).kernel(900.0, 1000.0)
+    kernel = PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.6, source_fwhm_y_mm=0.6,
+                     detector_fwhm_core_mm=0.25, detector_fwhm_tail_mm=1.0,
+                     detector_weight_core=0.9).kernel(900.0, 1000.0)
     r0, c0, n = CROP
     h = kernel.shape[0] // 2
     window = full[r0 - 2 * h:r0 + n + 2 * h, c0 - 2 * h:c0 + n + 2 * h]
