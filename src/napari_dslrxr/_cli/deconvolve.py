@@ -66,6 +66,7 @@ def register(app: typer.Typer) -> None:
         from ..core.errors import ParameterError
         from ..core.io import read_image, write_tiff
         from ..core.provenance import write_sidecar
+        from ..core.psf import load_psf
         from .common import ensure_parent
 
         dc.check_method(method)
@@ -81,10 +82,6 @@ def register(app: typer.Typer) -> None:
                 raise ParameterError(
                     "need 0 < --source-to-object-mm <= --source-to-detector-mm, "
                     f"got {source_to_object_mm:g} and {source_to_detector_mm:g}")
-            try:
-                from ..core.psf import load_psf
-            except ImportError:
-                raise ParameterError("--psf: the PSF model module is not available in this installation; use --kernel") from None
             model = load_psf(psf)
             kern = dc.validate_kernel(model.kernel(source_to_object_mm, source_to_detector_mm), str(psf))
             inputs.append(psf)
