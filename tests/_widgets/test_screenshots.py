@@ -13,12 +13,12 @@ import os
 import sys
 from pathlib import Path
 
+import napari
 import numpy as np
 import pytest
 
-from napari_dslrxr._widgets._common import viewer_camera
-
 from napari_dslrxr import _sample_data as samples
+from napari_dslrxr._widgets._common import viewer_camera
 
 pytestmark = pytest.mark.gui
 
@@ -56,7 +56,7 @@ def _viewer(make_napari_viewer):
 
 
 def _add(viewer, tuples):
-    return [viewer.add_layer(__import__("napari").layers.Layer.create(*t)) for t in tuples]
+    return [viewer.add_layer(napari.layers.Layer.create(*t)) for t in tuples]
 
 
 def test_screenshot_impulse(make_napari_viewer, wait_for_worker):
