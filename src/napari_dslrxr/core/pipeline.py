@@ -28,7 +28,7 @@ import numpy as np
 
 from .contrast import enhance_contrast
 from .dynamic_range import reduce_dynamic_range, sigmoid_lut
-from .errors import InputError, OutputError
+from .errors import InputError, OutputError, ParameterError
 from .flatfield import FlatReference, apply_flat_field, prepare_flat_reference
 from .params import PipelineParams, params_to_toml, validate_params
 from .region import Region, detect_screen, polygon_mask, rectify, voi_window
@@ -80,29 +80,21 @@ def to_uint16(display: np.ndarray) -> np.ndarray:
 
 
 def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> np.ndarray:
+    from .impulse import remove_impulses
+
     impulse = params.impulse
-    passes = [getattr(impulse, n, 0) for n in ("passes_h", "passes_s", "passes_v", "passes_grey")]
-    if not any(passes):
+    if not any((impulse.passes_h, impulse.passes_s, impulse.passes_v, impulse.passes_grey)):
         results["impulse"] = "skipped (all passes 0)"
         return image
-    try:
-        from .impulse import remove_impulses
-    except ImportError:  # pragma: no cover - the module ships with the package
-        results["impulse"] = "skipped (impulse module not available)"
-        return image
     res = remove_impulses(image, impulse)
-    masks = getattr(res, "masks", {}) or {}
-    results["impulse"] = {
-        "pulse_pixels": {k: int(np.count_nonzero(v)) for k, v in masks.items()},
-        "gain": getattr(res, "gain", None),
-        "pulse_rate": getattr(res, "pulse_rate", None),
-    }
+    results["impulse"] = {"pulse_pixels": {k: int(np.count_nonzero(v)) for k, v in res.masks.items()},
+                          "gain": res.gain, "pulse_rate": res.pulse_rate}
     return res.image
 
 
 def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, params: PipelineParams,
                   results: dict) -> np.ndarray:
-    from .deconvolution import deconvolve, estimate_regularisation
+    from .deconvolution import check_reg, deconvolve, estimate_regularisation
 
     # scale each channel to about [0, 1] over the region (the solver's expected range)
     chans = colour if colour.ndim == 3 else colour[..., None]
@@ -112,16 +104,25 @@ def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, para
         scales.append(max(float(np.percentile(sample, 99.5)), 1e-6))
     scale = np.asarray(scales, np.float32)
     normalised = chans / scale
-    out = deconvolve(normalised if colour.ndim == 3 else normalised[..., 0], kernel,
-                     method=params.deblur.method, reg=params.deblur.reg)
+    solver_input = normalised if colour.ndim == 3 else normalised[..., 0]
+    reg_used = check_reg(params.deblur.reg)
+    if reg_used == "auto":  # estimate here (once) so the sidecar records the number the solver used
+        reg_used = estimate_regularisation(solver_input, kernel, params.deblur.method)
+    out = deconvolve(solver_input, kernel, method=params.deblur.method, reg=reg_used)
     out = (out if out.ndim == 3 else out[..., None]) * scale
-    reg_used = params.deblur.reg
-    if reg_used == "auto":  # record the number chosen per channel, so the sidecar tells it
-        reg_used = [float(estimate_regularisation(normalised[..., c], kernel, params.deblur.method))
-                    for c in range(normalised.shape[2])]
     results["deblur"] = {"kernel_shape": list(kernel.shape), "method": params.deblur.method,
                          "reg": params.deblur.reg, "reg_used": reg_used}
     return out if colour.ndim == 3 else out[..., 0]
+
+
+def _scale_to_voi_window(x: np.ndarray, sample: np.ndarray, params: PipelineParams) -> tuple[float, float]:
+    """Map the VOI window found on ``sample`` to [0, 1], in place on float32 ``x``; return the window."""
+    lo, hi = voi_window(sample, low_percentile=params.region.voi_low_percentile,
+                        high_percentile=params.region.voi_high_percentile,
+                        exclude_direct_exposure=params.region.exclude_direct_exposure)
+    x -= np.float32(lo)
+    x *= np.float32(1.0 / (hi - lo))
+    return lo, hi
 
 
 def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: Sequence[np.ndarray] = (),
@@ -219,7 +220,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     grey = corrected.sum(axis=2, dtype=np.float32) if corrected.ndim == 3 else corrected.astype(np.float32)
     del corrected
     mask = region.mask
-    if params.region.rectify and region.detected or (params.region.rectify and params.region.polygon_xy):
+    if params.region.rectify and (region.detected or params.region.polygon_xy):
         grey = rectify(grey, region.polygon_xy)
         mask = np.ones(grey.shape, bool)
     step = max(1, int(np.sqrt(grey.size / 1_000_000)))  # statistics from a regular subsample
@@ -231,12 +232,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     if params.output.polarity == "bone_white":
         np.negative(attenuation, out=attenuation)
     sub_att = attenuation[::step, ::step]
-    lo, hi = voi_window(sub_att[sub_mask] if sub_mask.any() else sub_att,
-                        low_percentile=params.region.voi_low_percentile,
-                        high_percentile=params.region.voi_high_percentile,
-                        exclude_direct_exposure=params.region.exclude_direct_exposure)
-    attenuation -= np.float32(lo)
-    attenuation *= np.float32(1.0 / (hi - lo))
+    lo, hi = _scale_to_voi_window(attenuation, sub_att[sub_mask] if sub_mask.any() else sub_att, params)
     results["voi_window"] = [lo, hi]
     if keep_intermediates:
         inter["attenuation"] = attenuation.copy()
@@ -297,12 +293,7 @@ def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
     """
     params = params or PipelineParams()
     x = np.asarray(image, np.float32).copy()
-    sample = x[mask] if mask is not None else x
-    lo, hi = voi_window(sample, low_percentile=params.region.voi_low_percentile,
-                        high_percentile=params.region.voi_high_percentile,
-                        exclude_direct_exposure=params.region.exclude_direct_exposure)
-    x -= np.float32(lo)
-    x *= np.float32(1.0 / (hi - lo))
+    _scale_to_voi_window(x, x[mask] if mask is not None else x, params)
     x = reduce_dynamic_range(x, mask, params.dynamic_range)
     x = enhance_contrast(x, params.contrast, mask)
     return sigmoid_lut(x, params.dynamic_range)
@@ -448,7 +439,6 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     list of Path
         Files written.
     """
-    from .errors import ParameterError
     from .io import read_image
 
     params = validate_params(params or PipelineParams())
@@ -479,8 +469,8 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     if reference is None:
         flats = load_frames(flat_paths)
         darks = load_frames(dark_paths)
-        for name, frames in (("flat", flats), ("dark", darks)):
-            for p, f in zip(flat_paths if name == "flat" else dark_paths, frames, strict=True):
+        for name, frame_paths, frames in (("flat", flat_paths, flats), ("dark", dark_paths, darks)):
+            for p, f in zip(frame_paths, frames, strict=True):
                 if f.shape != image.shape:
                     raise InputError(p, f"{name} frame shape {f.shape} differs from {input_path}'s {image.shape}")
         offset = black if black is not None else params.flatfield.black_level_counts
