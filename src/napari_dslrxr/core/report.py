@@ -1,7 +1,8 @@
 """Outputs of a diagnosis: ``diagnosis.json``, residual TIFFs and an offline ``report.html``.
 
 Every file is written atomically and gets a provenance sidecar ``<file>.json``. The HTML report
-embeds its PNG plots as base64 (matplotlib, Agg backend) so it opens offline in any browser.
+embeds its PNG plots as base64 so it opens offline in any browser; they are drawn on matplotlib
+``Figure`` objects (no pyplot, and the caller's matplotlib backend is left alone).
 """
 
 from __future__ import annotations
@@ -38,10 +39,8 @@ def _figure_png(fig) -> bytes:
 
 def residual_maps_figure(result: DiagnosisResult, scale: int = 4, title: str = "") -> bytes:
     """PNG bytes: binned normalised residual before and after the added terms (same colour scale)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
 
     before = multiscale_maps(result.z_base, result.mask, (scale,))[scale]
     after = multiscale_maps(result.z_final, result.mask, (scale,))[scale]
@@ -57,8 +56,8 @@ def residual_maps_figure(result: DiagnosisResult, scale: int = 4, title: str = "
         ax.set_xticks([]), ax.set_yticks([])
     for r0, c0, r1, c1 in result.regions:
         b = scale * result.binning
-        axes[0].add_patch(matplotlib.patches.Rectangle((c0 / b - 0.5, r0 / b - 0.5), (c1 - c0) / b,
-                                                       (r1 - r0) / b, fill=False, ec="k", lw=1))
+        axes[0].add_patch(Rectangle((c0 / b - 0.5, r0 / b - 0.5), (c1 - c0) / b,
+                                    (r1 - r0) / b, fill=False, ec="k", lw=1))
     fig.colorbar(im, ax=axes, shrink=0.8, label=f"Σz/√n over {scale}×{scale} blocks")
     if title:
         fig.suptitle(title, fontsize=10)
@@ -69,9 +68,6 @@ def profiles_figure(result: DiagnosisResult, keys: Iterable[str] = ("edge_distan
                                                                      "intensity_dn", "columns"),
                     title: str = "") -> bytes:
     """PNG bytes: residual profiles (bin z-score Σz/√n) before and after, per covariate."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
     keys = list(keys)
