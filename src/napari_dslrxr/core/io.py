@@ -31,7 +31,7 @@ import sys
 import tempfile
 import threading
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from glob import escape as glob_escape
 from pathlib import Path
