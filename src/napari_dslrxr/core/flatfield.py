@@ -214,6 +214,15 @@ def _check_finite(arr: np.ndarray, what: str) -> None:
         raise InputError(what, "contains NaN or infinite values")
 
 
+def _clean_single_frame(frame: np.ndarray, what: str, offset_levels: np.ndarray,
+                        params: FlatFieldParams) -> tuple[np.ndarray, int]:
+    """Pulse clean-up of a lone reference frame (no median to reject them); checks dtype and NaN."""
+    _as_float_frames([frame[:1]], what)  # dtype check only (no full-size copy)
+    cleaned, n = remove_bright_pulses(frame, params.pulse_threshold_sigma, offset_counts=offset_levels)
+    _check_finite(cleaned, what)
+    return cleaned, n
+
+
 def combine_frames(frames: Sequence[np.ndarray]) -> np.ndarray:
     """Pixel-wise median of three or more frames, mean of two, copy of one (float32)."""
     if len(frames) == 1:
@@ -255,10 +264,7 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
         if np.asarray(darks[0]).shape != tuple(shape):
             raise InputError("dark frame", f"shape {np.asarray(darks[0]).shape} differs from the radiograph's {tuple(shape)}")
         if len(darks) == 1 and params.clean_flat_pulses:
-            _as_float_frames([darks[0][:1]], "dark frame")  # dtype check only
-            offset, n = remove_bright_pulses(darks[0], params.pulse_threshold_sigma,
-                                             offset_counts=_channel_levels(darks[0]))
-            _check_finite(offset, "dark frame")
+            offset, n = _clean_single_frame(darks[0], "dark frame", _channel_levels(darks[0]), params)
             cleaned += n
         else:
             offset = combine_frames(_as_float_frames(darks, "dark frame"))
@@ -279,10 +285,7 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
         raise InputError("flat frame", f"shape {np.asarray(flats[0]).shape} differs from the radiograph's {tuple(shape)}")
     n_flats = len(flats)
     if n_flats == 1 and params.clean_flat_pulses:
-        _as_float_frames([flats[0][:1]], "flat frame")  # dtype check only
-        flat, n = remove_bright_pulses(flats[0], params.pulse_threshold_sigma,
-                                       offset_counts=_channel_levels(offset))
-        _check_finite(flat, "flat frame")
+        flat, n = _clean_single_frame(flats[0], "flat frame", _channel_levels(offset), params)
         cleaned += n
     else:
         flat = combine_frames(_as_float_frames(flats, "flat frame"))
