@@ -15,6 +15,7 @@ Headers declaring 100000 x 100000 pixels must be refused before the pixels are a
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import struct
@@ -62,7 +63,10 @@ def seeds(kind: str) -> tuple[tuple[str, bytes], ...]:
             io.write_png(d / "a.png", grey16)
             io.write_png(d / "b.png", rng.integers(0, 255, (16, 18, 3)).astype(np.uint8))
             cv2.imwrite(str(d / "c.png"), rng.integers(0, 255, (16, 16, 4)).astype(np.uint8))
-            made = [(".png", d / n) for n in ("a.png", "b.png", "c.png")]
+            # Stored (uncompressed) deflate: a mutated pixel or filter byte leaves a valid stream,
+            # so with the checksums fixed the decoder gets past zlib and the case can be read.
+            cv2.imwrite(str(d / "d.png"), grey16, [cv2.IMWRITE_PNG_COMPRESSION, 0])
+            made = [(".png", d / n) for n in ("a.png", "b.png", "c.png", "d.png")]
         elif kind == "dicom":
             write_dicom(d / "a.dcm", grey16, photometric="MONOCHROME1", bits_stored=12)
             write_dicom(d / "b.dcm", grey16, photometric="MONOCHROME2", bits_stored=16, pixel_spacing_mm=None)
@@ -110,13 +114,14 @@ def mutated_file(draw, kind: str) -> tuple[str, bytes, list]:
             del data[pos:pos + draw(st.integers(1, 64))]
         ops.append((op, pos))
     if kind == "png" and draw(st.booleans()):
-        data = _fix_png_crcs(bytes(data))  # so the mutation reaches past libpng's checksums
-        ops.append(("fix_crc", 0))
+        data = _fix_png_checksums(bytes(data))  # so the mutation reaches past libpng's checksums
+        ops.append(("fix_checksums", 0))
     return suffix, bytes(data), ops
 
 
-def _fix_png_crcs(data: bytes) -> bytearray:
-    """Recompute the CRC of every PNG chunk whose length still fits in the file."""
+def _fix_png_checksums(data: bytes) -> bytearray:
+    """Recompute the CRC of every PNG chunk whose length still fits in the file, and the zlib
+    Adler-32 of each IDAT chunk whose deflate stream still decodes (one IDAT per seed file)."""
     out = bytearray(data)
     pos = 8
     while pos + 12 <= len(out):
@@ -124,6 +129,11 @@ def _fix_png_crcs(data: bytes) -> bytearray:
         end = pos + 8 + length
         if end + 4 > len(out):
             break
+        if out[pos + 4:pos + 8] == b"IDAT" and length > 6:
+            # Raw deflate between the 2-byte zlib header and the 4-byte Adler-32 trailer.
+            with contextlib.suppress(zlib.error):
+                pixels = zlib.decompressobj(-15).decompress(bytes(out[pos + 10:end - 4]))
+                out[end - 4:end] = struct.pack(">I", zlib.adler32(pixels))
         out[end:end + 4] = struct.pack(">I", zlib.crc32(bytes(out[pos + 4:end])))
         pos = end + 4
     return out
