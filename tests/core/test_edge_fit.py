@@ -238,3 +238,13 @@ def test_poisson_noise_is_weighted(rng):
         assert getattr(weighted, name) == pytest.approx(getattr(TRUTH, name), rel=0.05)
         assert abs(getattr(weighted, name) - getattr(TRUTH, name)) < 4 * weighted.uncertainty[name]
     assert weighted.uncertainty["detector_fwhm_core_mm"] < 0.9 * plain.uncertainty["detector_fwhm_core_mm"]
+
+
+def test_sub_step_core_keeps_its_weight_against_the_tail():
+    # A core far narrower than the synthesis grid must act as a delta of weight w, not be
+    # over-weighted by its under-sampled peak (was 10x at 0.0014 px FWHM).
+    tiny = PSFModel(1.0, 0.0, 0.0, 0.0014, 10.0, 0.5)
+    delta = PSFModel(1.0, 0.0, 0.0, 0.0, 10.0, 0.5)
+    a = synthesize_edge_image(tiny, 100.0, 200.0, (3, 201), 0.0, supersample=1)
+    b = synthesize_edge_image(delta, 100.0, 200.0, (3, 201), 0.0, supersample=1)
+    np.testing.assert_allclose(a, b, atol=1e-6)
