@@ -134,10 +134,6 @@ _IMPULSE_HELP = {
 }
 
 
-def _section_fields(section_obj) -> list[dataclasses.Field]:
-    return list(dataclasses.fields(section_obj))
-
-
 def _check_value(section: str, f: dataclasses.Field, value, default):
     """Type and range check of one value; returns the (possibly converted) value."""
     name = f"{section}.{f.name}"
