@@ -30,45 +30,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _harness import record  # noqa: E402
 
+from napari_dslrxr.core.metrics import global_contrast_factor  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("DSLRXR_DATA", REPO.parent / "shared" / "data"))
 
 
 def gcf(display: np.ndarray) -> float:
-    """Global contrast factor of a [0, 1] display image (project metric when available)."""
-    try:
-        from napari_dslrxr.core.metrics import global_contrast_factor
-    except ImportError:
-        global_contrast_factor = None
-    if global_contrast_factor is not None:
-        return float(global_contrast_factor(np.clip(display, 0, 1).astype(np.float32)))
-    return local_gcf(display)
-
-
-def local_gcf(display: np.ndarray) -> float:
-    """GCF (Matkovic 2005): 8-bit, gamma 2.2, area-averaged superpixels in linear light."""
-    weights = [(-0.406385 * i / 9 + 0.334573) * i / 9 + 0.0877526 for i in range(1, 10)]
-    k8 = np.round(np.clip(display, 0, 1) * 255).astype(np.float32)
-    lin = (k8 / 255.0) ** 2.2
-    h, w = lin.shape
-    total = 0.0
-    for weight, size in zip(weights, (1, 2, 4, 8, 16, 25, 50, 100, 200), strict=True):
-        lev = lin if size == 1 else cv2.resize(lin, (max(1, round(w / size)), max(1, round(h / size))),
-                                              interpolation=cv2.INTER_AREA)
-        lum = 100.0 * np.sqrt(lev)
-        diff_sum = np.zeros_like(lum)
-        count = np.zeros_like(lum)
-        dx, dy = np.abs(np.diff(lum, axis=1)), np.abs(np.diff(lum, axis=0))
-        diff_sum[:, :-1] += dx
-        diff_sum[:, 1:] += dx
-        count[:, :-1] += 1
-        count[:, 1:] += 1
-        diff_sum[:-1] += dy
-        diff_sum[1:] += dy
-        count[:-1] += 1
-        count[1:] += 1
-        total += weight * float(np.mean(diff_sum / np.maximum(count, 1)))
-    return total
+    """Global contrast factor of a [0, 1] display image (the project metric)."""
+    return float(global_contrast_factor(np.clip(display, 0, 1).astype(np.float32)))
 
 
 def stretch(image: np.ndarray) -> np.ndarray:
@@ -116,12 +86,21 @@ def clahe_at_gcf(display: np.ndarray, target: float, crop) -> tuple[float, np.nd
     out_hi = clahe(display, float(np.exp(hi)))
     if gcf(out_hi[crop]) < target:
         return float(np.exp(hi)), out_hi, gcf(out_hi[crop])
+    clip_log, out, g = bisect_to_gcf(lambda t: clahe(display, float(np.exp(t))), target, crop, lo, hi, 14)
+    return float(np.exp(clip_log)), out, g
+
+
+def bisect_to_gcf(render, target: float, crop, lo: float, hi: float, iterations: int):
+    """Bisect ``t`` in [lo, hi] (GCF increasing in ``t``) until ``render(t)``'s GCF is within 0.5 % of target.
+
+    Returns ``(t, image, gcf)`` of the last evaluation.
+    """
     best = None
-    for _ in range(14):
+    for _ in range(iterations):
         mid = 0.5 * (lo + hi)
-        out = clahe(display, float(np.exp(mid)))
+        out = render(mid)
         g = gcf(out[crop])
-        best = (float(np.exp(mid)), out, g)
+        best = (mid, out, g)
         if abs(g - target) < 0.005 * target:
             break
         if g < target:
@@ -133,20 +112,7 @@ def clahe_at_gcf(display: np.ndarray, target: float, crop) -> tuple[float, np.nd
 
 def ours_at_gcf(enhance, target: float, crop) -> tuple[float, np.ndarray, float]:
     """Bisect our strength ``t`` (bone_contrast = 1 + t, detail_contrast = t / 2) to a target GCF."""
-    lo, hi = 0.0, 3.0
-    best = None
-    for _ in range(12):
-        mid = 0.5 * (lo + hi)
-        out = enhance(mid)
-        g = gcf(out[crop])
-        best = (mid, out, g)
-        if abs(g - target) < 0.005 * target:
-            break
-        if g < target:
-            lo = mid
-        else:
-            hi = mid
-    return best
+    return bisect_to_gcf(enhance, target, crop, 0.0, 3.0, 12)
 
 
 def compare(name: str, input_display: np.ndarray, ours: np.ndarray, patch, crop=np.s_[:, :],
