@@ -57,20 +57,6 @@ def blur_fft(img: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out[pad:pad + img.shape[0], pad:pad + img.shape[1]].astype(np.float32)
 
 
-def best_cpu_time(fn, repeat: int) -> float:
-    """Best process CPU time (all threads) of ``repeat`` calls, in seconds.
-
-    On a shared machine wall time includes waiting for other processes; CPU time does not,
-    and on an idle machine the wall time is at most about this (threads only shorten it).
-    """
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        best = min(best, time.process_time() - t0)
-    return best
-
-
 def step_times(image, kernel, method, reg) -> list[float]:
     """Wall time of each generator step (setup, per-channel steps)."""
     times = []
@@ -105,8 +91,10 @@ def main() -> int:
     adaptive_s = best_time(lambda: dc.deconvolve(image, kernel, method="adaptive", reg=reg_adaptive), REPEAT)
     wiener_s = best_time(lambda: dc.deconvolve(image, kernel, method="wiener", reg=reg_wiener), REPEAT)
     rls_s = best_time(lambda: dc.deconvolve(image, kernel, method="rls", reg=reg_adaptive), REPEAT)
-    adaptive_cpu = best_cpu_time(lambda: dc.deconvolve(image, kernel, method="adaptive", reg=reg_adaptive), REPEAT)
-    wiener_cpu = best_cpu_time(lambda: dc.deconvolve(image, kernel, method="wiener", reg=reg_wiener), REPEAT)
+    adaptive_cpu = best_time(lambda: dc.deconvolve(image, kernel, method="adaptive", reg=reg_adaptive), REPEAT,
+                             clock=time.process_time)
+    wiener_cpu = best_time(lambda: dc.deconvolve(image, kernel, method="wiener", reg=reg_wiener), REPEAT,
+                           clock=time.process_time)
     steps = step_times(image, kernel, "adaptive", reg_adaptive)
     peak = peak_rss_mb()
 
