@@ -22,7 +22,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 
@@ -79,7 +78,7 @@ def write_edge_radiographs(folder: Path, blur_sigma_px: float, *, seed: int = 0)
 def main(argv: list[str] | None = None) -> int:
     """Generate the sample data, run the pipeline, write outputs; return an exit code."""
     from . import cli
-    from .core.io import write_png, write_tiff
+    from .core.io import read_image, write_png, write_tiff
     from .core.params import PipelineParams, save_params
     from .core.phantom import make_dslr_radiograph
     from .core.pipeline import run_file
@@ -121,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
                        source_to_detector_mm=DEMO_SOURCE_TO_DETECTOR_MM, progress=progress)
     print(file=sys.stderr)
     print(f"pipeline ran in {time.perf_counter() - t1:.1f} s")
-    processed = cv2.imread(str(out / "radiograph_dslrxr.tif"), cv2.IMREAD_UNCHANGED).astype(np.float32) / 65535.0
+    processed = read_image(out / "radiograph_dslrxr.tif").data.astype(np.float32) / 65535.0
     write_png(out / "before_after.png", before_after(frames.raw_rgb, processed, frames.black_level))
     for path in [*written, psf_path, out / "before_after.png", out / "params.toml"]:
         print(f"  wrote {path}")
