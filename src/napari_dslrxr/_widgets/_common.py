@@ -152,13 +152,13 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
             with reported_errors(desc):
                 on_finished()
 
-    worker.returned.connect(_returned)
     def _errored(exc: BaseException) -> None:
         if isinstance(exc, WorkCancelled):
             notify_info(f"{desc}: cancelled")
         else:
             notify_error(exc, context=desc)
 
+    worker.returned.connect(_returned)
     worker.errored.connect(_errored)
     worker.finished.connect(_finished)
     worker.start()
