@@ -172,10 +172,8 @@ def test_screenshot_diagnosis(make_napari_viewer, wait_for_worker):
     snap(viewer, "diagnosis")
 
 
-def test_screenshot_all_widgets_docked(make_napari_viewer, monkeypatch):
+def test_screenshot_all_widgets_docked(make_napari_viewer):
     """``dslrxr view`` layout: the sample radiograph and every widget tabbed on the right."""
-    import napari
-
     from napari_dslrxr._cli.view import populate_viewer
 
     viewer = _viewer(make_napari_viewer)
