@@ -137,7 +137,7 @@ def test_hsv_roundtrip_is_exact_enough(rng):
     rgb = rng.uniform(0, 60000, (64, 64, 3))
     h, s, v = rgb_to_hsv_counts(rgb)
     back = hsv_counts_to_rgb(h, s, v)
-    assert np.max(np.abs(back - rgb)) < 1e-3 * 60000
+    assert np.max(np.abs(back - rgb)) < 0.2  # counts; float32 hue/saturation round-off (measured 0.03)
 
 
 def test_hue_wraparound_is_not_smeared(rng):
