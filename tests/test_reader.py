@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from robustness import synthetic_files
 
 from napari_dslrxr import _reader
 from napari_dslrxr._reader import get_cfa_reader, get_reader, read_cfa_planes, read_radiographs
@@ -15,27 +16,7 @@ WHITE_COUNTS = 4095
 
 def write_dng(path, mosaic: np.ndarray) -> None:
     """Write an RGGB 12-bit DNG (black 256, white 4095) from a uint16 Bayer mosaic."""
-    pidng_core = pytest.importorskip("pidng.core")
-    defs = pytest.importorskip("pidng.defs")
-    tag = pidng_core.Tag
-    h, w = mosaic.shape
-    tags = pidng_core.DNGTags()
-    for key, value in [
-        (tag.ImageWidth, w), (tag.ImageLength, h), (tag.TileWidth, w), (tag.TileLength, h),
-        (tag.Orientation, defs.Orientation.Horizontal),
-        (tag.PhotometricInterpretation, defs.PhotometricInterpretation.Color_Filter_Array),
-        (tag.SamplesPerPixel, 1), (tag.BitsPerSample, 12), (tag.CFARepeatPatternDim, [2, 2]),
-        (tag.CFAPattern, defs.CFAPattern.RGGB), (tag.BlackLevel, BLACK_COUNTS),
-        (tag.WhiteLevel, WHITE_COUNTS),
-        (tag.ColorMatrix1, [[1, 1], [0, 1], [0, 1], [0, 1], [1, 1], [0, 1], [0, 1], [0, 1], [1, 1]]),
-        (tag.CalibrationIlluminant1, defs.CalibrationIlluminant.D65),
-        (tag.AsShotNeutral, [[1, 1], [1, 1], [1, 1]]), (tag.Make, "Test"), (tag.Model, "Synthetic"),
-        (tag.DNGVersion, defs.DNGVersion.V1_4), (tag.DNGBackwardVersion, defs.DNGVersion.V1_2),
-    ]:
-        tags.set(key, value)
-    writer = pidng_core.RAW2DNG()
-    writer.options(tags, path="", compress=False)
-    writer.convert(mosaic, filename=str(path.with_suffix("")))
+    synthetic_files.write_dng(path, mosaic, black_counts=BLACK_COUNTS, white_counts=WHITE_COUNTS, bits=12)
 
 
 @pytest.fixture
