@@ -75,30 +75,14 @@ def test_cfa_planes_are_the_mosaic_minus_black_and_overlay_the_rgb(dng_file):
 
 
 def test_tiff_and_dicom_radiographs(tmp_path, rng):
-    pydicom = pytest.importorskip("pydicom")
-    from pydicom.dataset import FileDataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
-
     grey = rng.integers(0, 4000, (40, 50)).astype(np.uint16)
     tif = write_tiff(tmp_path / "radiograph.tif", grey)
     ((data, kwargs, kind),) = read_radiographs(str(tif))
     np.testing.assert_array_equal(data, grey)
     assert kind == "image" and "rgb" not in kwargs
 
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1"
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = FileDataset(str(tmp_path / "r.dcm"), {}, file_meta=meta, preamble=b"\0" * 128)
-    ds.Modality = "DX"
-    ds.Rows, ds.Columns = grey.shape
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 12, 11
-    ds.SamplesPerPixel, ds.PixelRepresentation = 1, 0
-    ds.PhotometricInterpretation = "MONOCHROME1"
-    ds.ImagerPixelSpacing = [0.15, 0.2]
-    ds.PixelData = grey.tobytes()
-    ds.save_as(tmp_path / "r.dcm", enforce_file_format=True)
-    assert pydicom.dcmread(tmp_path / "r.dcm").Rows == 40
+    synthetic_files.write_dicom(tmp_path / "r.dcm", grey, photometric="MONOCHROME1", bits_stored=12,
+                                pixel_spacing_mm=(0.15, 0.2))
     ((data, kwargs, _),) = read_radiographs(str(tmp_path / "r.dcm"))
     np.testing.assert_array_equal(data, 4095 - grey)  # MONOCHROME1 shown as bright = bright
     assert kwargs["scale"] == (0.15, 0.2)

@@ -71,9 +71,10 @@ def write_dng(path: Path, mosaic: np.ndarray, *, pattern: str = "RGGB", black_co
 
 def write_dicom(path: Path, pixels: np.ndarray, *, photometric: str = "MONOCHROME1",
                 bits_stored: int = 12, rows_cols: tuple[int, int] | None = None,
-                pixel_spacing_mm: float | None = 0.1, private: bool = False) -> Path:
+                pixel_spacing_mm: float | tuple[float, float] | None = 0.1, private: bool = False) -> Path:
     """Write a minimal single-frame CR DICOM (explicit VR little endian) of uint16 pixels.
 
+    ``pixel_spacing_mm`` is one value or (row, column) spacing in mm, None for none;
     ``rows_cols`` overrides the Rows/Columns written in the header (for size-limit tests);
     ``private`` fills patient, operator and device-serial fields from :data:`PRIVATE_STRINGS`.
     """
@@ -96,7 +97,7 @@ def write_dicom(path: Path, pixels: np.ndarray, *, photometric: str = "MONOCHROM
     ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, bits_stored, bits_stored - 1
     ds.PixelRepresentation = 0
     if pixel_spacing_mm is not None:
-        ds.ImagerPixelSpacing = [pixel_spacing_mm, pixel_spacing_mm]
+        ds.ImagerPixelSpacing = list(np.broadcast_to(np.asarray(pixel_spacing_mm, float), 2))
     if private:
         ds.PatientName = PRIVATE_STRINGS["owner"].replace(" ", "^")
         ds.PatientID = PRIVATE_STRINGS["serial"]
