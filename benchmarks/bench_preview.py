@@ -36,7 +36,7 @@ TARGET_S = 0.200
 KERNEL_SIGMA_PX, KERNEL_RADIUS_PX = 2.0, 10
 
 
-def test_image(shape=(VIEW_PX, VIEW_PX), seed=0) -> np.ndarray:
+def bars_and_discs_image(shape=(VIEW_PX, VIEW_PX), seed=0) -> np.ndarray:
     """Bars and discs with noise, counts (float32)."""
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[: shape[0], : shape[1]]
@@ -52,7 +52,7 @@ def gaussian_kernel() -> np.ndarray:
 
 def core_latencies() -> dict:
     # The visible 1000 x 1000 view sits inside a larger image; the crop adds the margin.
-    big = test_image((VIEW_PX + 400, VIEW_PX + 400))
+    big = bars_and_discs_image((VIEW_PX + 400, VIEW_PX + 400))
     kernel = gaussian_kernel()
     rows = slice(200 - KERNEL_RADIUS_PX, 200 + VIEW_PX + KERNEL_RADIUS_PX)
     cols = rows
@@ -60,7 +60,7 @@ def core_latencies() -> dict:
     for method in ("wiener", "rls", "adaptive"):
         out[f"deconv_preview_{method}_s"] = round(best_time(
             lambda m=method: preview_region(big, kernel, rows, cols, method=m, reg=100.0), 5), 4)
-    prepared = prepare_input(test_image(), DISPLAY, VIEW_PX * VIEW_PX)
+    prepared = prepare_input(bars_and_discs_image(), DISPLAY, VIEW_PX * VIEW_PX)
     params = PipelineParams()
     out["contrast_preview_s"] = round(best_time(
         lambda: render(prepared, None, DISPLAY, params, VIEW_PX * VIEW_PX, False), 5), 4)
@@ -95,7 +95,7 @@ def widget_latencies() -> dict:
 
         viewer = napari.Viewer(show=False)
         app = QApplication.instance()
-        image = viewer.add_image(test_image(), name="view")
+        image = viewer.add_image(bars_and_discs_image(), name="view")
         kernel = viewer.add_image(gaussian_kernel(), name="kernel", visible=False)
         viewer.reset_view()  # the whole 1000 x 1000 image is the visible region
         deconv = DeconvolutionWidget(viewer)
