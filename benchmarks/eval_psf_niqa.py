@@ -52,6 +52,20 @@ def frame_difference_noise(frames, bright, dark) -> dict:
     return {"open_side": robust(diff[150:450, 5:50]), "plate_side": robust(diff[200:400, 200:400])}
 
 
+def _binned_tail(x, lsf, *, core_px: float, bin_px: float):
+    """Mean, position and standard error of the LSF in bins outside the core (|x| > core_px)."""
+    edges = np.concatenate([-np.arange(core_px, np.abs(x).max() + bin_px, bin_px)[::-1],
+                            np.arange(core_px, np.abs(x).max() + bin_px, bin_px)])
+    centres, means, errors = [], [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = (x >= lo) & (x < hi) & (np.abs(x) > core_px)
+        if inside.sum() >= 4:
+            centres.append(float(x[inside].mean()))
+            means.append(float(lsf[inside].mean()))
+            errors.append(float(lsf[inside].std(ddof=1) / np.sqrt(inside.sum())))
+    return np.asarray(centres), np.asarray(means), np.asarray(errors)
+
+
 def main() -> int:
     chosen = [int(v) for v in (sys.argv[1] if len(sys.argv) > 1 else "0,1,2").split(",")]
     n_frames = len(chosen)
@@ -100,15 +114,23 @@ def main() -> int:
         axes[0, 1].plot(x, c["esf_measured"] - c["esf_fitted"], ".", ms=3, color=col, label=label)
         axes[1, 0].plot(x, c["lsf_measured"], ".", ms=3, color=col, label=f"{label}, measured")
         axes[1, 0].plot(x, c["lsf_fitted"], "-", lw=1, color="k")
-        axes[1, 1].semilogy(x, np.abs(c["lsf_measured"]), ".", ms=3, color=col, label=f"{label}, measured")
+        # The tail is far below the per-sample noise: average the signed LSF in 4 px bins (taking
+        # |LSF| would turn noise into a flat fake tail) and draw the bins' noise level.
+        centres, means, errors = _binned_tail(x, c["lsf_measured"], core_px=6.0, bin_px=4.0)
+        shown = means > 0
+        axes[1, 1].semilogy(x[np.abs(x) <= 6.0], c["lsf_measured"][np.abs(x) <= 6.0], ".", ms=3, color=col)
+        axes[1, 1].errorbar(centres[shown], means[shown], yerr=errors[shown], fmt="o", ms=3, color=col,
+                            label=f"{label}, measured (4 px bin means)")
         axes[1, 1].semilogy(x, c["lsf_fitted"], "-", lw=1, color="k")
+        axes[1, 1].semilogy(centres, errors, ":", lw=1, color=col)
     axes[0, 0].plot([], [], "-", color="k", label="fitted (core + tail model)")
     axes[0, 0].set(title="Edge spread function (mean of repeats)", xlabel="distance from edge (px)",
                    ylabel="normalised transmission")
     axes[0, 1].axhline(0, color="k", lw=0.5)
     axes[0, 1].set(title="ESF residual (measured - fitted)", xlabel="distance from edge (px)")
     axes[1, 0].set(title="Line spread function", xlabel="distance from edge (px)", ylabel="1/px", xlim=(-12, 12))
-    axes[1, 1].set(title="LSF, log scale (detector tail)", xlabel="distance from edge (px)", ylim=(1e-5, 1))
+    axes[1, 1].set(title="LSF, log scale (detector tail; dotted: bin noise level)",
+                   xlabel="distance from edge (px)", ylim=(1e-5, 1))
     for ax in axes.ravel():
         ax.legend(fontsize=7)
     fig.suptitle(f"niqa_edge, repeats {chosen} x 2 edges: core FWHM {model.detector_fwhm_core_mm:.2f} px, "
