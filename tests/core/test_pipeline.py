@@ -138,3 +138,18 @@ def test_camera_raw_input_cleans_pulses_on_the_cfa_planes(tmp_path):
     side = json.loads(written[0].with_name(written[0].name + ".json").read_text())
     assert side["results"]["impulse"]["space"] == "cfa"
     assert sum(side["results"]["impulse"]["pulse_pixels"].values()) >= 40
+
+
+def test_batch_prepares_the_flat_reference_once(tmp_path, frames):
+    shot = write_tiff(tmp_path / "shot.tif", frames.raw_rgb)
+    refs = dict(flat_paths=[write_tiff(tmp_path / "flat.tif", frames.flat)],
+                dark_paths=[write_tiff(tmp_path / "dark.tif", frames.dark)])
+    for name in ("a", "b", "plain"):
+        (tmp_path / name).mkdir()
+    cache: dict = {}
+    run_file(shot, tmp_path / "a", reference_cache=cache, **refs)
+    (prepared,) = cache.values()
+    reused = run_file(shot, tmp_path / "b", reference_cache=cache, **refs)
+    assert len(cache) == 1 and next(iter(cache.values())) is prepared
+    plain = run_file(shot, tmp_path / "plain", **refs)
+    assert reused[0].read_bytes() == plain[0].read_bytes()  # same output as preparing it afresh

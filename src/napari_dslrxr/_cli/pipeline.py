@@ -12,8 +12,11 @@ import typer
 from ..core.errors import DslrxrError, ParameterError
 
 
-def _process_one(job: dict) -> tuple[str, bool, str, float]:
-    """Worker: run one input; returns (input, ok, message, seconds). Picklable for processes."""
+def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, bool, str, float]:
+    """Worker: run one input; returns (input, ok, message, seconds). Picklable for processes.
+
+    ``reference_cache`` (sequential runs) keeps the prepared flat reference between files.
+    """
     from ..core.params import params_from_dict
     from ..core.pipeline import run_file
 
@@ -23,7 +26,7 @@ def _process_one(job: dict) -> tuple[str, bool, str, float]:
         written = run_file(job["input"], job["out_dir"], params=params, flat_paths=job["flats"],
                            dark_paths=job["darks"], psf_path=job["psf"],
                            source_to_object_mm=job["sod"], source_to_detector_mm=job["sdd"],
-                           patient=job["patient"])
+                           patient=job["patient"], reference_cache=reference_cache)
         return job["input"], True, f"wrote {len(written)} file(s)", time.perf_counter() - t0
     except DslrxrError as exc:
         return job["input"], False, str(exc), time.perf_counter() - t0
@@ -114,8 +117,9 @@ def register(app: typer.Typer) -> None:
                 for i, outcome in enumerate(pool.map(_process_one, todo), start=1):
                     report(i, outcome)
         else:
+            references: dict = {}  # flats and darks are read and prepared once for the batch
             for i, job in enumerate(todo, start=1):
-                report(i, _process_one(job))
+                report(i, _process_one(job, references))
         if failed:
             print(f"dslrxr: {failed} of {total} file(s) failed", file=sys.stderr)
             raise typer.Exit(1)

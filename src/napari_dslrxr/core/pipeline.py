@@ -413,7 +413,8 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
              dark_paths: Sequence[str | os.PathLike] = (), psf_path: str | os.PathLike | None = None,
              source_to_object_mm: float | None = None, source_to_detector_mm: float | None = None,
              reference: FlatReference | None = None, patient: dict | None = None,
-             progress: Callable[[int, int], object] | None = None) -> list[Path]:
+             progress: Callable[[int, int], object] | None = None,
+             reference_cache: dict | None = None) -> list[Path]:
     """Read one frame, run the pipeline and write its outputs (with sidecars).
 
     Parameters
@@ -433,6 +434,10 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
         Prepared flat reference (a batch prepares it once).
     patient : dict, optional
         DICOM patient fields supplied by the user (``PatientName``, ``PatientID``...).
+    reference_cache : dict, optional
+        References prepared by earlier calls, keyed by reference files, frame shape, offset
+        and flat-field parameters; a batch passes one dict so its flats and darks are read
+        and prepared once, not once per file.
 
     Returns
     -------
@@ -466,6 +471,11 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
         from .psf import load_psf
 
         kernel = load_psf(psf_path).kernel(source_to_object_mm, source_to_detector_mm)
+    offset = black if black is not None else params.flatfield.black_level_counts
+    cache_key = (tuple(map(str, flat_paths)), tuple(map(str, dark_paths)), image.shape,
+                 repr(offset), repr(params.flatfield))
+    if reference is None and reference_cache is not None:
+        reference = reference_cache.get(cache_key)
     if reference is None:
         flats = load_frames(flat_paths)
         darks = load_frames(dark_paths)
@@ -473,9 +483,10 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
             for p, f in zip(frame_paths, frames, strict=True):
                 if f.shape != image.shape:
                     raise InputError(p, f"{name} frame shape {f.shape} differs from {input_path}'s {image.shape}")
-        offset = black if black is not None else params.flatfield.black_level_counts
         reference = prepare_flat_reference(image.shape, flats=flats, darks=darks, black_level=offset,
                                            params=params.flatfield)
+        if reference_cache is not None:
+            reference_cache[cache_key] = reference
     result = process_frame(image, params=params, reference=reference, psf_kernel=kernel, progress=progress,
                            impulses_removed=impulses_removed)
     if impulses_removed is not None:
