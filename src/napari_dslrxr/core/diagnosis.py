@@ -337,7 +337,7 @@ def _binned_profile(values: np.ndarray, z: np.ndarray, edges: np.ndarray) -> dic
         n = int(sel.sum())
         if n < 10:
             continue
-        centres.append(float(0.5 * (edges[b] + edges[b + 1])))
+        centres.append(float(values[sel].mean()))  # where the bin's pixels are (bins may be quantiles)
         means.append(float(z[sel].mean()))
         zscores.append(float(z[sel].sum() / np.sqrt(n)))
         counts.append(n)
