@@ -93,6 +93,31 @@ def test_adaptive_default_beats_best_skimage_wiener(scene):
     assert ours > baseline + 0.3, f"adaptive {ours:.2f} dB vs skimage wiener best {baseline:.2f} dB"
 
 
+def display_gcf(x) -> float:
+    from napari_dslrxr.core.metrics import global_contrast_factor
+
+    return global_contrast_factor(np.clip(np.round(np.asarray(x, np.float64) * 255.0), 0, 255).astype(np.uint8))
+
+
+@pytest.mark.parametrize("peak_counts", [2000.0, 20000.0])
+def test_gcf_tracks_the_truth_not_the_noise(peak_counts):
+    """GCF of the output stays near the truth's; it rises over the input's when the blur dominates.
+
+    At 2000 counts the noise lifts the input's GCF above the truth's (3.22 vs 3.12), so the
+    output's must fall back towards the truth; at 20000 counts the blur dominates and the
+    output's must rise over the input's by several percent.
+    """
+    truth = phantom()
+    kernel = gaussian_kernel(2.0, 7)
+    noisy = blur_and_noise(truth, kernel, peak_counts, np.random.default_rng(7))
+    g_out, g_in, g_truth = display_gcf(dc.deconvolve(noisy, kernel)), display_gcf(noisy), display_gcf(truth)
+    assert abs(g_out / g_truth - 1.0) < 0.05, (g_out, g_truth)
+    if peak_counts >= 20000.0:
+        assert g_out > 1.03 * g_in, (g_out, g_in)
+    else:
+        assert g_in > g_truth and g_out < g_in, (g_out, g_in, g_truth)
+
+
 def test_auto_reg_is_close_to_the_truth_optimum_for_rls(scene):
     truth, kernel, noisy = scene
     auto = dc.estimate_regularisation(noisy, kernel, "rls")
