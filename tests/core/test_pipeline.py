@@ -153,3 +153,37 @@ def test_batch_prepares_the_flat_reference_once(tmp_path, frames):
     assert len(cache) == 1 and next(iter(cache.values())) is prepared
     plain = run_file(shot, tmp_path / "plain", **refs)
     assert reused[0].read_bytes() == plain[0].read_bytes()  # same output as preparing it afresh
+
+
+def test_contrast_widget_and_core_share_the_display_stages(frames):
+    """The widget's render, the pipeline's stages v-vi and enhance_radiograph give the same bytes."""
+    import dataclasses
+
+    pytest.importorskip("magicgui")
+    from napari_dslrxr._widgets.contrast import DISPLAY, LINEAR, PreparedInput, render
+    from napari_dslrxr.core.pipeline import apply_display_stages, enhance_radiograph
+
+    params = PipelineParams()  # off-default sliders and a white outside, so every field is used
+    params.region = dataclasses.replace(params.region, rectify=False)
+    params.dynamic_range = dataclasses.replace(params.dynamic_range, latitude=0.4, detail_gain=1.8,
+                                               lut_width=0.3)
+    params.contrast = dataclasses.replace(params.contrast, bone_contrast=1.7, detail_contrast=0.6)
+    params.output = dataclasses.replace(params.output, outside_region="white")
+    result = process_frame(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark], params=params,
+                           keep_intermediates=True)
+    attenuation, mask = result.intermediates["attenuation"], result.region.mask
+    assert 0.05 < (~mask).mean() < 0.9  # the outside fill is exercised
+
+    # linear path: widget on the pipeline's VOI-scaled attenuation == the pipeline's display
+    prepared = PreparedInput(attenuation, mask, attenuation, mask, 1.0)
+    _, widget_display = render(prepared, frames.raw_rgb, LINEAR, params, attenuation.size, True)
+    core_display = apply_display_stages(attenuation, mask, params)
+    assert widget_display.dtype == np.float32 and widget_display.shape == mask.shape
+    np.testing.assert_array_equal(widget_display, result.display)
+    np.testing.assert_array_equal(core_display, result.display)
+    assert np.all(result.display[~mask] == 1.0) and result.display[mask].std() > 0.05
+
+    # display-radiograph path: widget (its own VOI scaling) == enhance_radiograph
+    grey = frames.raw_rgb.mean(axis=2).astype(np.float32)
+    _, widget_grey = render(None, grey, DISPLAY, params, grey.size, True)
+    np.testing.assert_array_equal(widget_grey, enhance_radiograph(grey, params))

@@ -1,9 +1,10 @@
 """Contrast widget: dynamic range, latitude, detail and bone-contrast sliders with live preview.
 
 Wraps the display stages of the core, as :func:`napari_dslrxr.core.pipeline.enhance_radiograph`
-chains them: value-of-interest scaling, :mod:`~napari_dslrxr.core.dynamic_range` latitude
-reduction, :mod:`~napari_dslrxr.core.contrast` MUSICA-style multiscale contrast and the sigmoid
-display curve. The value-of-interest scaling does not depend on the sliders, so it is done
+chains them: value-of-interest scaling, then
+:func:`~napari_dslrxr.core.pipeline.apply_display_stages` (:mod:`~napari_dslrxr.core.dynamic_range`
+latitude reduction, :mod:`~napari_dslrxr.core.contrast` MUSICA-style multiscale contrast and the
+sigmoid display curve). The value-of-interest scaling does not depend on the sliders, so it is done
 once per input and cached; a slider move runs only the three later stages. Two kinds of input:
 
 * **linear counts** (a camera frame, flat-fielded or not): converted once to the
@@ -31,9 +32,7 @@ from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, PushBut
 
 from ..core.errors import ParameterError
 from ..core.params import PipelineParams
-from ..core.contrast import enhance_contrast
-from ..core.dynamic_range import reduce_dynamic_range, sigmoid_lut
-from ..core.pipeline import process_frame
+from ..core.pipeline import apply_display_stages, process_frame
 from ..core.region import voi_window
 from ._common import debounced, guarded, readout_label, run_in_worker, show_layer
 from ._registry import register_stage_widget
@@ -114,21 +113,15 @@ def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: 
            max_pixels: int, full: bool) -> tuple[PreparedInput, np.ndarray]:
     """Worker job: prepare the input if needed, then the core display stages on it.
 
-    The stages after value-of-interest scaling, in the pipeline's order: latitude reduction
-    (:func:`~napari_dslrxr.core.dynamic_range.reduce_dynamic_range`), multiscale contrast
-    (:func:`~napari_dslrxr.core.contrast.enhance_contrast`) and the display curve
-    (:func:`~napari_dslrxr.core.dynamic_range.sigmoid_lut`); outside the screen region is
-    black (or white), as in the pipeline's output.
+    The stages after value-of-interest scaling, exactly as the pipeline runs them
+    (:func:`~napari_dslrxr.core.pipeline.apply_display_stages`): latitude reduction,
+    multiscale contrast and the display curve; outside the screen region is black (or
+    white), as in the pipeline's output.
     """
     if prepared is None:
         prepared = prepare_input(data, kind, max_pixels, params)
     image, mask = (prepared.image, prepared.mask) if full else (prepared.small, prepared.small_mask)
-    display = reduce_dynamic_range(image, mask, params.dynamic_range)
-    display = enhance_contrast(display, params.contrast, mask)
-    display = sigmoid_lut(display, params.dynamic_range)
-    if mask is not None:
-        display[~mask] = 0.0 if params.output.outside_region == "black" else 1.0
-    return prepared, display
+    return prepared, apply_display_stages(image, mask, params)
 
 
 class ContrastWidget(Container):

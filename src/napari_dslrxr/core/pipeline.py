@@ -239,34 +239,87 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     timings["grey_log"] = clock() - t0
     yield 5, total
 
-    # (v) dynamic-range / latitude reduction
+    # (v) dynamic-range / latitude reduction, (vi) multiscale contrast, display curve: the
+    # same steps as apply_display_stages, one at a time for the progress and the timings
+    display_steps = _display_steps(attenuation, mask, params)
+    del attenuation  # the steps' generator holds it until stage (v) is done
     t0 = clock()
-    compressed = reduce_dynamic_range(attenuation, mask, params.dynamic_range)
-    del attenuation
+    compressed = next(display_steps)
     if keep_intermediates:
         inter["dynamic_range"] = compressed.copy()
+    del compressed
     timings["dynamic_range"] = clock() - t0
     yield 6, total
 
-    # (vi) multiscale contrast
     t0 = clock()
-    enhanced = enhance_contrast(compressed, params.contrast, mask)
-    del compressed
+    enhanced = next(display_steps)
     if keep_intermediates:
         inter["contrast"] = enhanced.copy()
+    del enhanced
     timings["contrast"] = clock() - t0
     yield 7, total
 
-    # display curve
     t0 = clock()
-    display = sigmoid_lut(enhanced, params.dynamic_range)
-    del enhanced
-    if not mask.all():
-        display[~mask] = 0.0 if params.output.outside_region == "black" else 1.0
+    display = next(display_steps)
     timings["display"] = clock() - t0
     yield 8, total
     return PipelineResult(display=display, region=region, voi_window=(lo, hi), timings_s=timings,
                           results=results, intermediates=inter, params=params)
+
+
+def _display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelineParams,
+                   fill_outside: bool = True) -> Generator[np.ndarray, None, None]:
+    """Yield the image after dynamic-range reduction, after contrast, and the display image.
+
+    The body of :func:`apply_display_stages`, one stage per ``next`` so that
+    :func:`run_pipeline` can report progress and time each stage. The generator releases
+    ``image`` once the first stage is done and each stage's result once the next is done.
+    """
+    x = reduce_dynamic_range(image, mask, params.dynamic_range)
+    del image
+    yield x
+    x = enhance_contrast(x, params.contrast, mask)
+    yield x
+    x = sigmoid_lut(x, params.dynamic_range)
+    if fill_outside and mask is not None and not mask.all():
+        x[~mask] = 0.0 if params.output.outside_region == "black" else 1.0
+    yield x
+
+
+def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
+                         params: PipelineParams | None = None, *, fill_outside: bool = True) -> np.ndarray:
+    """Stages v-vi and the display curve on a value-of-interest scaled attenuation image.
+
+    The display end of the chain, shared by :func:`run_pipeline`, :func:`enhance_radiograph`
+    and the napari contrast widget: dynamic-range / latitude reduction
+    (:func:`~napari_dslrxr.core.dynamic_range.reduce_dynamic_range`), multiscale contrast
+    (:func:`~napari_dslrxr.core.contrast.enhance_contrast`), the sigmoid display curve
+    (:func:`~napari_dslrxr.core.dynamic_range.sigmoid_lut`), then the pixels outside the
+    region set to black (0) or white (1) as ``params.output.outside_region`` says.
+
+    Parameters
+    ----------
+    image : ndarray, float32, (H, W)
+        Value-of-interest scaled attenuation, dimensionless: the VOI window maps to 0..1
+        (values outside it are kept). Not modified.
+    mask : ndarray, bool, (H, W), optional
+        Screen region: the stages' statistics and low-passes use only these pixels.
+        None = all pixels.
+    params : PipelineParams, optional
+        Uses ``dynamic_range``, ``contrast`` and ``output.outside_region``.
+    fill_outside : bool
+        Set the pixels outside ``mask`` to the ``outside_region`` value (as the pipeline's
+        output does); False leaves them processed like the rest.
+
+    Returns
+    -------
+    ndarray, float32, (H, W)
+        Display values in [0, 1] (a new array).
+    """
+    params = params or PipelineParams()
+    for display in _display_steps(image, mask, params, fill_outside):
+        pass  # rebinding drops each intermediate as soon as the next stage is done
+    return display
 
 
 def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
@@ -294,9 +347,7 @@ def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
     params = params or PipelineParams()
     x = np.asarray(image, np.float32).copy()
     _scale_to_voi_window(x, x[mask] if mask is not None else x, params)
-    x = reduce_dynamic_range(x, mask, params.dynamic_range)
-    x = enhance_contrast(x, params.contrast, mask)
-    return sigmoid_lut(x, params.dynamic_range)
+    return apply_display_stages(x, mask, params, fill_outside=False)
 
 
 def drive(gen: Generator, progress: Callable[[int, int], object] | None = None):
