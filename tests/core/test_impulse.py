@@ -251,32 +251,14 @@ def test_cfa_planes_single_pixel_zingers(rng):
 
 
 def write_bayer_dng(path, mosaic: np.ndarray, *, black: int = 64, white: int = 16383):
-    """Write an RGGB mosaic (uint16 counts incl. black) as an uncompressed DNG with pidng."""
-    from pathlib import Path
+    """Write an RGGB mosaic (uint16 counts incl. black) as an uncompressed 16-bit DNG.
 
-    from pidng.core import RAW2DNG
-    from pidng.defs import CalibrationIlluminant, DNGVersion, Orientation, PhotometricInterpretation
-    from pidng.dng import DNGTags, Tag
+    The shared writer (``tests/robustness/synthetic_files.py``) with this file's black and
+    white levels; kept under this name because tests/_cli/test_denoise.py uses it.
+    """
+    from robustness.synthetic_files import write_dng
 
-    h, w = mosaic.shape
-    tags = DNGTags()
-    for key, value in [
-        (Tag.ImageWidth, w), (Tag.ImageLength, h), (Tag.TileWidth, w), (Tag.TileLength, h),
-        (Tag.Orientation, Orientation.Horizontal),
-        (Tag.PhotometricInterpretation, PhotometricInterpretation.Color_Filter_Array),
-        (Tag.SamplesPerPixel, 1), (Tag.BitsPerSample, 16), (Tag.CFARepeatPatternDim, [2, 2]),
-        (Tag.CFAPattern, [0, 1, 1, 2]), (Tag.BlackLevel, [black]), (Tag.WhiteLevel, [white]),
-        (Tag.ColorMatrix1, [[1, 1], [0, 1], [0, 1], [0, 1], [1, 1], [0, 1], [0, 1], [0, 1], [1, 1]]),
-        (Tag.CalibrationIlluminant1, CalibrationIlluminant.D65),
-        (Tag.AsShotNeutral, [[1, 1], [1, 1], [1, 1]]),
-        (Tag.Make, "Synthetic"), (Tag.Model, "Bayer"),
-        (Tag.DNGVersion, DNGVersion.V1_4), (Tag.DNGBackwardVersion, DNGVersion.V1_2),
-    ]:
-        tags.set(key, value)
-    writer = RAW2DNG()
-    writer.options(tags, path="", compress=False)
-    writer.convert(np.ascontiguousarray(mosaic, dtype=np.uint16), filename=str(Path(path).with_suffix("")))
-    return Path(path).with_suffix(".dng")
+    return write_dng(path, mosaic, pattern="RGGB", black_counts=black, white_counts=white, bits=16)
 
 
 def zinger_mosaic(rng, shape=(192, 256), count=60, black=64):
