@@ -68,6 +68,31 @@ def test_jobs_give_identical_outputs(tmp_path, inputs):
         assert (tmp_path / "j1" / name).read_bytes() == (tmp_path / "j2" / name).read_bytes()
 
 
+def test_each_worker_prepares_the_flat_reference_once(tmp_path, inputs, monkeypatch):
+    """--jobs > 1: a worker process reads the flats and darks for its first file only."""
+    from napari_dslrxr._cli import pipeline as cli_pipeline
+    from napari_dslrxr.core import pipeline as core_pipeline
+    from napari_dslrxr.core.params import params_to_dict
+
+    reads = []
+    real_load = core_pipeline.load_frames
+    monkeypatch.setattr(core_pipeline, "load_frames", lambda paths: reads.append(list(paths)) or real_load(paths))
+    monkeypatch.setattr(cli_pipeline, "_worker_references", None)
+    cli_pipeline._init_worker()  # what the pool runs in each new worker process
+    (tmp_path / "w").mkdir()
+    for shot in ("shot1", "shot2"):
+        job = {"input": str(inputs[shot]), "out_dir": str(tmp_path / "w"), "params": params_to_dict(PipelineParams()),
+               "flats": [str(inputs["flat"])], "darks": [str(inputs["dark"])], "psf": None, "sod": None,
+               "sdd": None, "patient": None}
+        name, ok, message, _ = cli_pipeline._process_one_in_worker(job)
+        assert ok, message
+    assert reads == [[str(inputs["flat"])], [str(inputs["dark"])]]  # once, for the first file
+    assert len(cli_pipeline._worker_references) == 1
+    assert main(["run", str(inputs["shot2"]), "--flat", str(inputs["flat"]), "--dark", str(inputs["dark"]),
+                 "-o", str(tmp_path / "seq")]) == 0
+    assert (tmp_path / "w" / "shot2_dslrxr.tif").read_bytes() == (tmp_path / "seq" / "shot2_dslrxr.tif").read_bytes()
+
+
 def test_config_and_usage_errors(tmp_path, inputs, capsys):
     cfg = tmp_path / "p.toml"
     cfg.write_text("[contrast]\nbone_contrast = 99.0\n")

@@ -34,6 +34,20 @@ def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, b
         return job["input"], False, "out of memory", time.perf_counter() - t0
 
 
+#: Flat references prepared in this worker process (``--jobs > 1``): each worker reads and prepares
+#: the flats and darks once, not once per file. Set by the pool initializer, never in the parent.
+_worker_references: dict | None = None
+
+
+def _init_worker() -> None:
+    global _worker_references
+    _worker_references = {}
+
+
+def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float]:
+    return _process_one(job, _worker_references)
+
+
 def _expand_inputs(inputs: list[Path]) -> list[Path]:
     from ..core.io import DICOM_EXTENSIONS, PNG_EXTENSIONS, RAW_EXTENSIONS, TIFF_EXTENSIONS
 
@@ -113,8 +127,8 @@ def register(app: typer.Typer) -> None:
                 print(f"[{i}/{total}] dslrxr: error: {text}", file=sys.stderr)
 
         if jobs > 1 and total > 1:
-            with ProcessPoolExecutor(max_workers=min(jobs, total)) as pool:
-                for i, outcome in enumerate(pool.map(_process_one, todo), start=1):
+            with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool:
+                for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
                     report(i, outcome)
         else:
             references: dict = {}  # flats and darks are read and prepared once for the batch
