@@ -10,7 +10,8 @@ once per input and cached; a slider move runs only the three later stages. Two k
 * **linear counts** (a camera frame, flat-fielded or not): converted once to the
   value-of-interest scaled attenuation image and the screen mask by the core pipeline with
   the display stages switched off (:func:`napari_dslrxr.core.pipeline.process_frame`);
-* **display radiograph** (DICOM CR/DR, bright = bone): used as it is.
+* **display radiograph** (DICOM CR/DR, bright = bone): used as it is; a collimated field
+  (:func:`napari_dslrxr.core.region.detect_collimation`) is its region, as in the core.
 
 The live preview runs on the whole image, area-downsampled to at most ``preview_max_pixels``
 (default one megapixel, about what a screen shows), in a thread worker, debounced and
@@ -33,7 +34,7 @@ from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, PushBut
 from ..core.errors import ParameterError
 from ..core.params import PipelineParams
 from ..core.pipeline import apply_display_stages, process_frame
-from ..core.region import voi_window
+from ..core.region import detect_collimation, voi_window
 from ._common import debounced, guarded, readout_label, run_in_worker, show_layer
 from ._registry import register_stage_widget
 
@@ -75,7 +76,8 @@ def prepare_input(data: np.ndarray, kind: str, max_pixels: int, params: Pipeline
     switched off (no black level subtracted: the layer is taken as counts above black), giving
     the VOI-scaled attenuation and the screen mask. A display radiograph is VOI-scaled with
     :func:`napari_dslrxr.core.region.voi_window` as :func:`~napari_dslrxr.core.pipeline.enhance_radiograph`
-    does.
+    does, inside the collimated field found by :func:`napari_dslrxr.core.region.detect_collimation`
+    when ``params.region.detect_collimation`` is on (the mask; None when no blade is found).
     """
     params = params or PipelineParams()
     data = np.asarray(data)
@@ -92,11 +94,14 @@ def prepare_input(data: np.ndarray, kind: str, max_pixels: int, params: Pipeline
             mask = None
     else:
         image = (data.mean(axis=2) if data.ndim == 3 else data).astype(np.float32)
-        lo, hi = voi_window(image, low_percentile=params.region.voi_low_percentile,
+        mask = None
+        if params.region.detect_collimation:
+            field = detect_collimation(image, inset_px=params.region.collimation_inset_px)
+            mask = field.mask if field.detected else None
+        lo, hi = voi_window(image if mask is None else image[mask], low_percentile=params.region.voi_low_percentile,
                             high_percentile=params.region.voi_high_percentile,
                             exclude_direct_exposure=params.region.exclude_direct_exposure)
         image = (image - np.float32(lo)) * np.float32(1.0 / (hi - lo))
-        mask = None
     factor = max(1.0, float(np.sqrt(image.size / max_pixels)))
     if factor > 1.0:
         size = (max(8, round(image.shape[1] / factor)), max(8, round(image.shape[0] / factor)))

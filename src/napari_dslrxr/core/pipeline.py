@@ -31,7 +31,7 @@ from .dynamic_range import reduce_dynamic_range, sigmoid_lut
 from .errors import InputError, OutputError, ParameterError
 from .flatfield import FlatReference, apply_flat_field, prepare_flat_reference
 from .params import PipelineParams, params_to_toml, validate_params
-from .region import Region, detect_screen, polygon_mask, rectify, voi_window
+from .region import Region, detect_collimation, detect_screen, polygon_mask, rectify, voi_window
 
 #: Stage names, in the order their progress steps are yielded.
 PIPELINE_STAGES = ("impulse", "flatfield", "region", "deblur", "grey_log", "dynamic_range", "contrast", "display")
@@ -337,7 +337,12 @@ def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
     params : PipelineParams, optional
         Uses ``region`` (VOI percentiles), ``dynamic_range`` and ``contrast``.
     mask : ndarray, bool, optional
-        Region of interest for the statistics; default all pixels.
+        Region of interest for the statistics (pixels outside are processed, not filled).
+        Default: when ``params.region.detect_collimation`` is true (the default), the exposed
+        field found by :func:`~napari_dslrxr.core.region.detect_collimation` (edges moved
+        ``params.region.collimation_inset_px`` inward), with the
+        collimated band outside it set to ``params.output.outside_region``; all pixels when
+        no collimation is found or detection is off.
 
     Returns
     -------
@@ -346,8 +351,13 @@ def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
     """
     params = params or PipelineParams()
     x = np.asarray(image, np.float32).copy()
+    fill_outside = False
+    if mask is None and params.region.detect_collimation:
+        field = detect_collimation(x, inset_px=params.region.collimation_inset_px)
+        if field.detected:
+            mask, fill_outside = field.mask, True
     _scale_to_voi_window(x, x[mask] if mask is not None else x, params)
-    return apply_display_stages(x, mask, params, fill_outside=False)
+    return apply_display_stages(x, mask, params, fill_outside=fill_outside)
 
 
 def drive(gen: Generator, progress: Callable[[int, int], object] | None = None):
