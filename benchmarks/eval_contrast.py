@@ -3,7 +3,9 @@
 For each image (the two CR radiographs in ``$DSLRXR_DATA/cr_dicom`` and two synthetic DSLR
 frames from :mod:`napari_dslrxr.core.phantom`):
 
-* input display ``x``: the radiograph with a 0.5-99.5 % stretch (CR), or the pipeline's
+* input display ``x``: the radiograph with a 0.5-99.5 % stretch within its exposed field
+  (CR; :func:`napari_dslrxr.core.region.detect_collimation`, and every score is taken on the
+  largest box inside that field, as ours shutters the collimator band black), or the pipeline's
   value-of-interest scaled attenuation image before stages v-vi (synthetic frames);
 * ours: dynamic-range reduction + MUSICA + sigmoid curve (default parameters);
 * CLAHE: ``skimage.exposure.equalize_adapthist(x, clip_limit=c)`` with ``c`` bisected so its
@@ -41,9 +43,9 @@ def gcf(display: np.ndarray) -> float:
     return float(global_contrast_factor(np.clip(display, 0, 1).astype(np.float32)))
 
 
-def stretch(image: np.ndarray) -> np.ndarray:
-    """0.5-99.5 % percentile stretch to [0, 1], float32."""
-    lo, hi = np.percentile(image, [0.5, 99.5])
+def stretch(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """0.5-99.5 % percentile stretch to [0, 1] (percentiles inside ``mask`` if given), float32."""
+    lo, hi = np.percentile(image if mask is None else image[mask], [0.5, 99.5])
     return np.clip((image.astype(np.float32) - lo) / max(hi - lo, 1e-9), 0, 1).astype(np.float32)
 
 
@@ -54,15 +56,28 @@ def highpass_std(image: np.ndarray, patch: tuple[int, int, int, int]) -> float:
     return float(np.std(p - cv2.GaussianBlur(p, (0, 0), 2.0)))
 
 
-def find_flat_patch(display: np.ndarray, size: int = 48) -> tuple[int, int, int, int]:
-    """The mid-grey patch with the smallest large-scale gradient (a flat area of anatomy)."""
+def inner_box(polygon_xy: np.ndarray, shape: tuple[int, int], margin_px: int = 4):
+    """Largest axis-aligned box inside a TL, TR, BR, BL quadrilateral, shrunk by ``margin_px``."""
+    poly = np.asarray(polygon_xy, np.float64)
+    r0 = max(0, int(np.ceil(max(poly[0, 1], poly[1, 1]))) + margin_px)
+    r1 = min(shape[0], int(np.floor(min(poly[2, 1], poly[3, 1]))) - margin_px)
+    c0 = max(0, int(np.ceil(max(poly[0, 0], poly[3, 0]))) + margin_px)
+    c1 = min(shape[1], int(np.floor(min(poly[1, 0], poly[2, 0]))) - margin_px)
+    return np.s_[r0:r1, c0:c1]
+
+
+def find_flat_patch(display: np.ndarray, size: int = 48, crop=np.s_[:, :]) -> tuple[int, int, int, int]:
+    """The mid-grey patch with the smallest large-scale gradient (a flat area of anatomy) in ``crop``."""
     h, w = display.shape
+    rows, cols = crop
+    r_lo, r_hi = max(size, rows.start or 0), min(h - 2 * size, rows.stop or h)
+    c_lo, c_hi = max(size, cols.start or 0), min(w - 2 * size, cols.stop or w)
     low = cv2.GaussianBlur(display, (0, 0), 8.0)
     gy, gx = np.gradient(low)
     grad = np.hypot(gx, gy)
     best = None
-    for r in range(size, h - 2 * size, size // 2):
-        for c in range(size, w - 2 * size, size // 2):
+    for r in range(r_lo, r_hi - size + 1, size // 2):
+        for c in range(c_lo, c_hi - size + 1, size // 2):
             m = float(display[r:r + size, c:c + size].mean())
             if not 0.25 < m < 0.75:
                 continue
@@ -158,6 +173,7 @@ def main() -> int:
     from napari_dslrxr.core.contrast import enhance_contrast
     from napari_dslrxr.core.dynamic_range import reduce_dynamic_range, sigmoid_lut
     from napari_dslrxr.core.pipeline import enhance_radiograph, process_frame
+    from napari_dslrxr.core.region import detect_collimation
 
     def strength_params(t: float) -> PipelineParams:
         p = PipelineParams()
@@ -172,24 +188,27 @@ def main() -> int:
             print(f"skipping {path}: not found")
             continue
         image = read_image(path).data.astype(np.float32)
-        input_display = stretch(image)
+        # Score inside the exposed field (the collimator band is not anatomy; ours shutters it
+        # black): the same box for input, ours and CLAHE, and the input stretched within it.
+        field = detect_collimation(image)
+        input_display = stretch(image, field.mask)
+        crop = inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
         ours = enhance_radiograph(image, PipelineParams())
 
         def enhance(t, image=image):
             return enhance_radiograph(image, strength_params(t))
 
-        rows[fname.split("_")[0]] = compare(fname.split("_")[0], input_display, ours, find_flat_patch(input_display),
-                                            enhance=enhance)
+        rows[fname.split("_")[0]] = compare(fname.split("_")[0], input_display, ours,
+                                            find_flat_patch(input_display, crop=crop), crop, enhance=enhance)
+        rows[fname.split("_")[0]]["collimation_detected"] = bool(field.detected)
     for seed in (0, 1):
         frames = make_dslr_radiograph((1200, 1800), seed=seed)
         result = process_frame(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark],
                                params=PipelineParams(), keep_intermediates=True)
         input_display = np.clip(result.intermediates["attenuation"], 0, 1)
         input_display[~result.region.mask] = 0.0
-        poly = result.region.polygon_xy
         # GCF on the largest axis-aligned box inside the screen (same crop for all)
-        r0, r1 = int(np.ceil(max(poly[0, 1], poly[1, 1]))) + 4, int(np.floor(min(poly[2, 1], poly[3, 1]))) - 4
-        c0, c1 = int(np.ceil(max(poly[0, 0], poly[3, 0]))) + 4, int(np.floor(min(poly[1, 0], poly[2, 0]))) - 4
+        crop = inner_box(result.region.polygon_xy, input_display.shape)
         attenuation, mask = result.intermediates["attenuation"], result.region.mask
 
         def enhance(t, attenuation=attenuation, mask=mask):
@@ -200,7 +219,7 @@ def main() -> int:
             return out
 
         rows[f"synthetic_seed{seed}"] = compare(f"synthetic_seed{seed}", input_display, result.display,
-                                                frames.truth.flat_patch_rc, np.s_[r0:r1, c0:c1], enhance=enhance)
+                                                frames.truth.flat_patch_rc, crop, enhance=enhance)
     summary = {"images": rows, "pass": bool(rows) and all(r["pass"] for r in rows.values())}
     record("eval_contrast", summary)
     return 0 if summary["pass"] else 1
