@@ -243,21 +243,14 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     # same steps as apply_display_stages, one at a time for the progress and the timings
     display_steps = _display_steps(attenuation, mask, params)
     del attenuation  # the steps' generator holds it until stage (v) is done
-    t0 = clock()
-    compressed = next(display_steps)
-    if keep_intermediates:
-        inter["dynamic_range"] = compressed.copy()
-    del compressed
-    timings["dynamic_range"] = clock() - t0
-    yield 6, total
-
-    t0 = clock()
-    enhanced = next(display_steps)
-    if keep_intermediates:
-        inter["contrast"] = enhanced.copy()
-    del enhanced
-    timings["contrast"] = clock() - t0
-    yield 7, total
+    for step, stage in ((6, "dynamic_range"), (7, "contrast")):
+        t0 = clock()
+        stage_output = next(display_steps)
+        if keep_intermediates:
+            inter[stage] = stage_output.copy()
+        del stage_output
+        timings[stage] = clock() - t0
+        yield step, total
 
     t0 = clock()
     display = next(display_steps)
