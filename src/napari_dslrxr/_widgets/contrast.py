@@ -33,8 +33,7 @@ from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, PushBut
 
 from ..core.errors import ParameterError
 from ..core.params import PipelineParams
-from ..core.pipeline import apply_display_stages, process_frame
-from ..core.region import detect_collimation, voi_window
+from ..core.pipeline import apply_display_stages, process_frame, scale_display_radiograph
 from ._common import debounced, guarded, readout_label, run_in_worker, show_layer
 from ._registry import register_stage_widget
 
@@ -74,10 +73,10 @@ def prepare_input(data: np.ndarray, kind: str, max_pixels: int, params: Pipeline
     Runs once per input (in the worker); the sliders do not change it. Linear counts go
     through the core pipeline with impulse removal, flat field, dynamic range and contrast
     switched off (no black level subtracted: the layer is taken as counts above black), giving
-    the VOI-scaled attenuation and the screen mask. A display radiograph is VOI-scaled with
-    :func:`napari_dslrxr.core.region.voi_window` as :func:`~napari_dslrxr.core.pipeline.enhance_radiograph`
-    does, inside the collimated field found by :func:`napari_dslrxr.core.region.detect_collimation`
-    when ``params.region.detect_collimation`` is on (the mask; None when no blade is found).
+    the VOI-scaled attenuation and the screen mask. A display radiograph is VOI-scaled inside
+    its collimated field by :func:`~napari_dslrxr.core.pipeline.scale_display_radiograph`, as
+    :func:`~napari_dslrxr.core.pipeline.enhance_radiograph` does (the mask; None when no blade
+    is found).
     """
     params = params or PipelineParams()
     data = np.asarray(data)
@@ -93,15 +92,7 @@ def prepare_input(data: np.ndarray, kind: str, max_pixels: int, params: Pipeline
         if mask.all():
             mask = None
     else:
-        image = (data.mean(axis=2) if data.ndim == 3 else data).astype(np.float32)
-        mask = None
-        if params.region.detect_collimation:
-            field = detect_collimation(image, inset_px=params.region.collimation_inset_px)
-            mask = field.mask if field.detected else None
-        lo, hi = voi_window(image if mask is None else image[mask], low_percentile=params.region.voi_low_percentile,
-                            high_percentile=params.region.voi_high_percentile,
-                            exclude_direct_exposure=params.region.exclude_direct_exposure)
-        image = (image - np.float32(lo)) * np.float32(1.0 / (hi - lo))
+        image, mask, _ = scale_display_radiograph(data.mean(axis=2) if data.ndim == 3 else data, params)
     factor = max(1.0, float(np.sqrt(image.size / max_pixels)))
     if factor > 1.0:
         size = (max(8, round(image.shape[1] / factor)), max(8, round(image.shape[0] / factor)))

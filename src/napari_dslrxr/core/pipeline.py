@@ -315,32 +315,34 @@ def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
     return display
 
 
-def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
-                       mask: np.ndarray | None = None) -> np.ndarray:
-    """Stages v-vi and the display curve on a grey radiograph already in display orientation.
+def scale_display_radiograph(image: np.ndarray, params: PipelineParams | None = None,
+                             mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """Value-of-interest scaling of a grey display radiograph, inside its collimated field.
 
-    For radiographs that are already log-scaled and bone-bright (for example CR/DR DICOM
-    after MONOCHROME1 inversion): value-of-interest scaling inside ``mask``, dynamic-range
-    reduction, multiscale contrast and the sigmoid curve.
+    The step before :func:`apply_display_stages` for radiographs that are already log-scaled
+    and bone-bright (CR/DR DICOM after MONOCHROME1 inversion), shared by
+    :func:`enhance_radiograph` and the napari contrast widget.
 
     Parameters
     ----------
     image : ndarray, (H, W)
-        Grey radiograph (any real dtype), higher = brighter on display.
+        Grey radiograph (any real dtype), higher = brighter on display. Not modified.
     params : PipelineParams, optional
-        Uses ``region`` (VOI percentiles), ``dynamic_range`` and ``contrast``.
+        Uses ``region`` (VOI percentiles, ``detect_collimation``, ``collimation_inset_px``).
     mask : ndarray, bool, optional
-        Region of interest for the statistics (pixels outside are processed, not filled).
-        Default: when ``params.region.detect_collimation`` is true (the default), the exposed
-        field found by :func:`~napari_dslrxr.core.region.detect_collimation` (edges moved
-        ``params.region.collimation_inset_px`` inward), with the
-        collimated band outside it set to ``params.output.outside_region``; all pixels when
-        no collimation is found or detection is off.
+        Region of interest for the statistics. Default: when ``params.region.detect_collimation``
+        is true, the exposed field found by :func:`~napari_dslrxr.core.region.detect_collimation`;
+        None (all pixels) when no collimation is found or detection is off.
 
     Returns
     -------
-    ndarray, float32, (H, W)
-        Display values in [0, 1].
+    scaled : ndarray, float32, (H, W)
+        The VOI window mapped to 0..1 (values outside it kept).
+    mask : ndarray, bool, (H, W) or None
+        The region used.
+    fill_outside : bool
+        True when ``mask`` is a detected collimated field, whose outside the display should
+        shutter (a caller's own mask only restricts the statistics).
     """
     params = params or PipelineParams()
     x = np.asarray(image, np.float32).copy()
@@ -350,6 +352,35 @@ def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
         if field.detected:
             mask, fill_outside = field.mask, True
     _scale_to_voi_window(x, x[mask] if mask is not None else x, params)
+    return x, mask, fill_outside
+
+
+def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
+                       mask: np.ndarray | None = None) -> np.ndarray:
+    """Stages v-vi and the display curve on a grey radiograph already in display orientation.
+
+    :func:`scale_display_radiograph` (value-of-interest scaling inside the collimated field),
+    then :func:`apply_display_stages` (dynamic-range reduction, multiscale contrast, sigmoid
+    curve; a detected collimator band is set to ``params.output.outside_region``).
+
+    Parameters
+    ----------
+    image : ndarray, (H, W)
+        Grey radiograph (any real dtype), higher = brighter on display.
+    params : PipelineParams, optional
+        Uses ``region`` (VOI percentiles, collimation), ``dynamic_range``, ``contrast`` and
+        ``output.outside_region``.
+    mask : ndarray, bool, optional
+        Region of interest for the statistics (pixels outside are processed, not filled);
+        default: the detected collimated field, see :func:`scale_display_radiograph`.
+
+    Returns
+    -------
+    ndarray, float32, (H, W)
+        Display values in [0, 1].
+    """
+    params = params or PipelineParams()
+    x, mask, fill_outside = scale_display_radiograph(image, params, mask)
     return apply_display_stages(x, mask, params, fill_outside=fill_outside)
 
 
