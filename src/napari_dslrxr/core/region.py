@@ -359,7 +359,8 @@ def _sample(image: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
     return values.reshape(pts.shape[:-1])
 
 
-def _blade_score(small: np.ndarray, theta: float, rho: float, outward: float, min_step: float) -> float:
+def _blade_score(small: np.ndarray, grid_xy: tuple[np.ndarray, np.ndarray], theta: float, rho: float,
+                 outward: float, min_step: float) -> float:
     """Evidence (0 = none) that a collimator blade lies beyond a line on the normalised small image.
 
     A blade shades a band between the line and the frame border: the band is brighter than
@@ -380,7 +381,7 @@ def _blade_score(small: np.ndarray, theta: float, rho: float, outward: float, mi
     if step.size < 8:
         return 0.0
     coverage = float(np.mean(step > min_step))
-    yy, xx = np.mgrid[0:h, 0:w]
+    xx, yy = grid_xy
     signed = outward * (xx * np.cos(theta) + yy * np.sin(theta) - rho)
     band, field_px = small[signed > 3.0], small[signed < -3.0]
     if band.size < 2 * len(points) or field_px.size < band.size // 4:
@@ -408,10 +409,10 @@ def _refine_blade(image: np.ndarray, theta: float, rho: float, outward: float,
     offsets = np.arange(-half_width_px, half_width_px + 1.0)
     profiles = _sample(image, points[:, None, :] + offsets[None, :, None] * normal)
     valid = np.all(np.isfinite(profiles), axis=1)
-    points, profiles = points[valid], cv2.GaussianBlur(profiles[valid].astype(np.float32), (1, 5), 0) \
-        if np.count_nonzero(valid) else profiles[valid]
-    if len(points) < 8:
+    if np.count_nonzero(valid) < 8:
         return None
+    points = points[valid]
+    profiles = cv2.GaussianBlur(profiles[valid].astype(np.float32), (1, 5), 0)  # along the line
     slope = np.diff(profiles, axis=1)  # rises towards the blade (outward)
     best = np.argmax(slope, axis=1)
     strength = slope[np.arange(len(best)), best]
@@ -514,6 +515,7 @@ def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_ti
     gy, gx = np.gradient(cv2.GaussianBlur(small, (0, 0), 1.5))
     magnitude = np.hypot(gx, gy) + 1e-12
     tilt = np.deg2rad(max_tilt_deg)
+    grid_xy = np.meshgrid(np.arange(sw), np.arange(sh))  # (x, y) pixel indices, once for all candidates
     lines = {}
     for side, (axis_theta, outward) in _BLADE_SIDES.items():
         normal_gradient = (gx if axis_theta == 0 else gy) * outward  # rises towards the blade
@@ -527,7 +529,7 @@ def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_ti
                                                      threshold=0.2 * length, min_distance=5)
         best = (0.0, None)
         for theta, rho in zip(peak_angles, peak_rhos):
-            score = _blade_score(small, float(theta), float(rho), outward, min_step)
+            score = _blade_score(small, grid_xy, float(theta), float(rho), outward, min_step)
             if score > best[0]:
                 best = (score, (float(theta), float(rho)))
         if best[1] is None:
