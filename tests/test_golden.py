@@ -1,0 +1,151 @@
+"""Golden outputs: the exact bytes the ``dslrxr`` process writes for fixed, generated inputs.
+
+These tests pin behaviour while code is moved or restructured: any change to a number in the
+pipeline (impulse removal, flat field, region, deblurring, dynamic range, contrast), the PSF fit,
+the simulator or the diagnosis changes a hash here.
+
+Inputs are made by the project's own seeded generators (the demo's DSLR-like frame with flat,
+dark and edge radiographs; the simulator's phantom scene), small so the whole module runs in a
+few seconds. Every command runs in its own ``dslrxr`` process, as a user would run it.
+
+What is hashed (sha256):
+
+* ``dslrxr run`` outputs: the 16-bit TIFF, the PNG preview and the DICOM DX file, as bytes;
+* ``dslrxr simulate`` recording (float32 TIFF), as bytes;
+* ``psf.json`` from ``dslrxr psf fit`` and ``diagnosis.json`` from ``dslrxr diagnose``: parsed,
+  the fields in :data:`VOLATILE_JSON_KEYS` dropped at any depth, then dumped with sorted keys.
+
+Sidecars (``<file>.json``) are not hashed: they hold input paths (a temporary folder here),
+timings and library versions by design.
+
+The expected hashes live in ``tests/golden_hashes.json``. After an intended change of results,
+regenerate them with ``DSLRXR_REGEN_GOLDEN=1 python -m pytest tests/test_golden.py`` and say in
+the commit why the outputs changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+GOLDEN_FILE = Path(__file__).with_name("golden_hashes.json")
+REGENERATE = os.environ.get("DSLRXR_REGEN_GOLDEN") == "1"
+
+#: JSON keys dropped before hashing, and why: run times differ from run to run ("timings_s",
+#: "elapsed_s", "seconds", "fit_time_s"); the package and library versions and the creation date
+#: change without any change of results ("version", "versions", "library_versions", "created");
+#: input and output paths name the temporary folder of the test ("path", "inputs", "output",
+#: "outputs").
+VOLATILE_JSON_KEYS = frozenset({"timings_s", "elapsed_s", "seconds", "fit_time_s", "version", "versions",
+                                "library_versions", "created", "path", "inputs", "output", "outputs"})
+
+FRAME_SHAPE = (192, 288)
+SOURCE_TO_OBJECT_MM = 1150.0
+SOURCE_TO_DETECTOR_MM = 1200.0
+
+SCENE = """[geometry]
+source_to_detector_mm = 1200.0
+source_to_object_mm = 1000.0
+pixel_pitch_mm = 0.1
+[object]
+thickness_mm = "thickness.tif"
+material = "aluminium"
+[source]
+kvp = 60
+"""
+
+
+def _dslrxr(*args: str | Path) -> None:
+    """Run one ``dslrxr`` command in its own process; fail the test with its stderr if it fails."""
+    proc = subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, f"dslrxr {' '.join(map(str, args))} exited {proc.returncode}: {proc.stderr}"
+
+
+def _strip_volatile(value):
+    if isinstance(value, dict):
+        return {k: _strip_volatile(v) for k, v in value.items() if k not in VOLATILE_JSON_KEYS}
+    if isinstance(value, list):
+        return [_strip_volatile(v) for v in value]
+    return value
+
+
+def _file_hash(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _json_hash(path: Path) -> str:
+    stable = _strip_volatile(json.loads(path.read_text(encoding="utf-8")))
+    return hashlib.sha256(json.dumps(stable, sort_keys=True).encode()).hexdigest()
+
+
+def produce_outputs(folder: Path) -> dict[str, str]:
+    """Generate the inputs in ``folder``, run the commands, return {output name: sha256}."""
+    from napari_dslrxr.core.io import write_tiff
+    from napari_dslrxr.core.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.simulator import phantom_thickness_mm
+    from napari_dslrxr.demo import write_edge_radiographs
+
+    inputs = folder / "input"
+    inputs.mkdir(parents=True)
+    frames = make_dslr_radiograph(FRAME_SHAPE, seed=0)
+    for name, arr in (("radiograph", frames.raw_rgb), ("flat", frames.flat), ("dark", frames.dark)):
+        write_tiff(inputs / f"{name}.tif", arr)
+    edges = write_edge_radiographs(inputs, frames.truth.blur_sigma_px, seed=0)
+    write_tiff(inputs / "thickness.tif", phantom_thickness_mm((96, 96)))
+    scene = inputs / "scene.toml"
+    scene.write_text(SCENE, encoding="utf-8")
+
+    out = folder / "out"
+    out.mkdir()
+    _dslrxr("psf", "fit", edges, "-o", out / "psf.json")
+    # psf.json holds its fit time, and the DICOM UIDs are seeded by the checksums of every input
+    # file: the pipeline reads a copy with the fit time zeroed, so the DICOM bytes are stable.
+    fitted = json.loads((out / "psf.json").read_text(encoding="utf-8"))
+    fitted["fit_report"]["fit_time_s"] = 0.0
+    (inputs / "psf.json").write_text(json.dumps(fitted), encoding="utf-8")
+    _dslrxr("run", inputs / "radiograph.tif", "--flat", inputs / "flat.tif", "--dark", inputs / "dark.tif",
+            "--psf", inputs / "psf.json", "--source-to-object-mm", SOURCE_TO_OBJECT_MM,
+            "--source-to-detector-mm", SOURCE_TO_DETECTOR_MM, "--dicom", "-o", out)
+    _dslrxr("simulate", scene, "-o", out / "recording.tif",
+            "--effect", "mirror_ghost=epsilon:0.03,shift_mm:0.4", "--seed", "4")
+    _dslrxr("diagnose", scene, out / "recording.tif", "-o", out / "diagnosis")
+
+    hashes = {name: _file_hash(out / name) for name in
+              ("radiograph_dslrxr.tif", "radiograph_dslrxr.png", "radiograph_dslrxr.dcm", "recording.tif")}
+    hashes["psf.json"] = _json_hash(out / "psf.json")
+    hashes["diagnosis.json"] = _json_hash(out / "diagnosis" / "diagnosis.json")
+    return hashes
+
+
+@pytest.fixture(scope="module")
+def produced(tmp_path_factory) -> dict[str, str]:
+    return produce_outputs(tmp_path_factory.mktemp("golden"))
+
+
+def test_outputs_match_the_golden_hashes(produced):
+    if REGENERATE:
+        GOLDEN_FILE.write_text(json.dumps(produced, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+        pytest.skip(f"regenerated {GOLDEN_FILE.name}")
+    expected = json.loads(GOLDEN_FILE.read_text(encoding="utf-8"))
+    assert set(produced) == set(expected)
+    changed = sorted(name for name in expected if produced[name] != expected[name])
+    assert not changed, f"outputs changed: {changed} (regenerate with DSLRXR_REGEN_GOLDEN=1 if intended)"
+
+
+def test_volatile_fields_are_the_only_ones_dropped(tmp_path):
+    """The JSON hash ignores timings and paths but not a result: a changed number changes it."""
+    doc = {"model": {"fwhm_mm": 0.25}, "timings_s": {"fit": 1.0}, "inputs": [{"path": "/a"}]}
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps(doc))
+    b.write_text(json.dumps({**doc, "timings_s": {"fit": 9.0}, "inputs": [{"path": "/b"}]}))
+    assert _json_hash(a) == _json_hash(b)
+    b.write_text(json.dumps({**doc, "model": {"fwhm_mm": float(np.nextafter(0.25, 1.0))}}))
+    assert _json_hash(a) != _json_hash(b)
