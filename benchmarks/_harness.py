@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def load_test_module(relative_path: str, name: str) -> ModuleType:
-    """Import a test file (e.g. ``tests/core/test_impulse_realdata.py``) to reuse its protocol.
+    """Import a test file (e.g. ``tests/core/stages/test_impulse_realdata.py``) to reuse its protocol.
 
     The evaluation scripts print the full figures for exactly what the tests assert, so they
     share the test's data preparation instead of copying it.

@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _harness import best_time, peak_rss_mb, record  # noqa: E402
 
-from napari_dslrxr.core import deconvolution as dc  # noqa: E402
+from napari_dslrxr.core.stages import deconvolution as dc
 from napari_dslrxr.core.psf import PSFModel  # noqa: E402
 
 HEIGHT, WIDTH = 4000, 6000

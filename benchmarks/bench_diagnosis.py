@@ -8,7 +8,7 @@ full 2048² grid). Also reports the named term and its recovered parameters.
 
 ``python benchmarks/bench_diagnosis.py --docs docs`` additionally writes the README figures
 ``docs/diagnosis_niqa_maps.png`` and ``docs/diagnosis_niqa_profiles.png`` (before/after residuals
-of the niqa_edge real data, see tests/core/test_diagnosis_realdata.py).
+of the niqa_edge real data, see tests/core/diagnosis/test_mismatch_realdata.py).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _harness import peak_rss_mb, record  # noqa: E402
 
 from napari_dslrxr.core.diagnosis import DiagnosisOptions, diagnose_scene  # noqa: E402
-from napari_dslrxr.core.simulator import parse_scene, phantom_thickness_mm, simulate_recording  # noqa: E402
+from napari_dslrxr.core.simulation.simulator import parse_scene, phantom_thickness_mm, simulate_recording  # noqa: E402
 
 LIMITS_S = {512: 30.0, 2048: 180.0}
 GLARE = {"eta": 0.012, "range_mm": 1.5}
@@ -54,7 +54,8 @@ def run(size_px: int) -> dict:
 
 
 def write_docs(folder: Path) -> dict:
-    from napari_dslrxr.core import io, report
+    from napari_dslrxr.core import io
+    from napari_dslrxr.core.diagnosis import report
     from napari_dslrxr.core.diagnosis import diagnose_edge_repeats
 
     data = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "niqa_edge"

@@ -51,7 +51,7 @@ def synthetic_frame(height: int, width: int, seed: int = 7):
     """Radiograph-like RGB frame (uint16 counts) with pulses; returns frame and truth mask."""
     import cv2
 
-    from napari_dslrxr.core.impulse import hsv_counts_to_rgb, rgb_to_hsv_counts
+    from napari_dslrxr.core.stages.impulse import hsv_counts_to_rgb, rgb_to_hsv_counts
 
     rng = np.random.default_rng(seed)
     small_h, small_w = height // 10, width // 10
@@ -96,7 +96,7 @@ def synthetic_frame(height: int, width: int, seed: int = 7):
 def main() -> None:
     from scipy import ndimage as ndi
 
-    from napari_dslrxr.core.impulse import remove_impulses
+    from napari_dslrxr.core.stages.impulse import remove_impulses
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--small", action="store_true", help="1500x1000 instead of 6000x4000")

@@ -1,6 +1,6 @@
 """Full pipeline on a 6000x4000 colour frame (no deblurring): <= 15 s and <= 3 GB peak memory.
 
-The frame is a synthetic DSLR-like radiograph (napari_dslrxr.core.phantom) with a flat and a
+The frame is a synthetic DSLR-like radiograph (napari_dslrxr.core.simulation.phantom) with a flat and a
 dark frame. Reports the total wall time of one run, the share of each stage and the peak
 resident memory of the process (the frames are generated in a child process, so this is the
 pipeline's own peak plus the three input frames). ``--without-impulse`` runs stages ii-vi
@@ -23,7 +23,7 @@ from _harness import peak_rss_mb, record  # noqa: E402
 
 
 def _make_frames(folder: str) -> None:
-    from napari_dslrxr.core.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 
     frames = make_dslr_radiograph((4000, 6000), seed=0)
     for name, arr in (("raw", frames.raw_rgb), ("flat", frames.flat), ("dark", frames.dark)):
@@ -31,7 +31,7 @@ def _make_frames(folder: str) -> None:
 
 
 def main() -> int:
-    from napari_dslrxr.core.flatfield import prepare_flat_reference
+    from napari_dslrxr.core.stages.flatfield import prepare_flat_reference
     from napari_dslrxr.core.params import PipelineParams
     from napari_dslrxr.core.pipeline import process_frame
 

@@ -1,10 +1,10 @@
 """Contrast enhancement vs CLAHE: GCF and flat-region noise amplification at equal GCF.
 
 For each image (the two CR radiographs in ``$DSLRXR_DATA/cr_dicom`` and two synthetic DSLR
-frames from :mod:`napari_dslrxr.core.phantom`):
+frames from :mod:`napari_dslrxr.core.simulation.phantom`):
 
 * input display ``x``: the radiograph with a 0.5-99.5 % stretch within its exposed field
-  (CR; :func:`napari_dslrxr.core.region.detect_collimation`, and every score is taken on the
+  (CR; :func:`napari_dslrxr.core.stages.region.detect_collimation`, and every score is taken on the
   largest box inside that field, as ours shutters the collimator band black), or the pipeline's
   value-of-interest scaled attenuation image before stages v-vi (synthetic frames);
 * ours: dynamic-range reduction + MUSICA + sigmoid curve (default parameters);
@@ -169,11 +169,11 @@ def compare(name: str, input_display: np.ndarray, ours: np.ndarray, patch, crop=
 def main() -> int:
     from napari_dslrxr.core.io import read_image
     from napari_dslrxr.core.params import PipelineParams
-    from napari_dslrxr.core.phantom import make_dslr_radiograph
-    from napari_dslrxr.core.contrast import enhance_contrast
-    from napari_dslrxr.core.dynamic_range import reduce_dynamic_range, sigmoid_lut
+    from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.stages.contrast import enhance_contrast
+    from napari_dslrxr.core.stages.dynamic_range import reduce_dynamic_range, sigmoid_lut
     from napari_dslrxr.core.pipeline import enhance_radiograph, process_frame
-    from napari_dslrxr.core.region import detect_collimation
+    from napari_dslrxr.core.stages.region import detect_collimation
 
     def strength_params(t: float) -> PipelineParams:
         p = PipelineParams()

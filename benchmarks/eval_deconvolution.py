@@ -47,7 +47,7 @@ from scipy.signal import fftconvolve
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from napari_dslrxr.core import deconvolution as dc  # noqa: E402
+from napari_dslrxr.core.stages import deconvolution as dc
 from napari_dslrxr.core.io import read_image  # noqa: E402
 from napari_dslrxr.core.metrics import global_contrast_factor  # noqa: E402
 from napari_dslrxr.core.psf import PSFModel  # noqa: E402

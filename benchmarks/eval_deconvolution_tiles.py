@@ -41,7 +41,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import eval_deconvolution as single  # noqa: E402  (its helpers, kernel and degradation)
-from napari_dslrxr.core import deconvolution as dc  # noqa: E402
+from napari_dslrxr.core.stages import deconvolution as dc
 
 IMAGES = {
     "leg": "cr_dicom/RG3_UNCR.dcm",

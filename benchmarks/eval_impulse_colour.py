@@ -1,6 +1,6 @@
 """Figures for the impulse stage on synthetic colour data built from a real chest radiograph.
 
-Same data as tests/core/test_impulse_realdata.py::test_colour_radiograph_pulses_in_h_s_v
+Same data as tests/core/stages/test_impulse_realdata.py::test_colour_radiograph_pulses_in_h_s_v
 (shared/data/cr_dicom/RG1_UNCR.dcm, 512x512 crop, Gd2O2S:Tb green light, Poisson, 2x2 to
 4x4 pulses in H, S or V). Prints recall/precision per channel, the estimated V gain, and PE
 to the pulse-free photo for: the input, remove_impulses (HSV), one grey pass, 3x3 and 5x5
@@ -28,14 +28,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def main() -> None:
     import cv2
 
-    from napari_dslrxr.core.impulse import remove_impulses
+    from napari_dslrxr.core.stages.impulse import remove_impulses
     from napari_dslrxr.core.io import read_image
     from napari_dslrxr.core.metrics import percentage_error
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--figure", type=Path)
     args = parser.parse_args()
-    helpers = load_test_module("tests/core/test_impulse_realdata.py", "impulse_realdata")
+    helpers = load_test_module("tests/core/stages/test_impulse_realdata.py", "impulse_realdata")
     data = Path(os.environ.get("DSLRXR_DATA", ROOT.parent / "shared" / "data"))
     rng = np.random.default_rng(20261122)  # the tests' seed
     radiograph = read_image(data / "cr_dicom" / "RG1_UNCR.dcm").data[700:1212, 600:1112].astype(np.float64)

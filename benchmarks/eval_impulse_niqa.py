@@ -1,4 +1,4 @@
-"""Figures for the impulse stage on the NIQA edge repeats (protocol in tests/core/test_impulse_realdata.py).
+"""Figures for the impulse stage on the NIQA edge repeats (protocol in tests/core/stages/test_impulse_realdata.py).
 
 Run: .venv/bin/python benchmarks/eval_impulse_niqa.py [--figure out.png]
 Prints, per frame, the spot count, the % of spot pixels removed and the PE (%) on the
@@ -24,12 +24,12 @@ ROOT = Path(__file__).resolve().parents[1]
 def main() -> None:
     import cv2
 
-    from napari_dslrxr.core.impulse import ImpulseParams, remove_impulses
+    from napari_dslrxr.core.stages.impulse import ImpulseParams, remove_impulses
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--figure", type=Path)
     args = parser.parse_args()
-    proto = load_test_module("tests/core/test_impulse_realdata.py", "niqa_protocol")
+    proto = load_test_module("tests/core/stages/test_impulse_realdata.py", "niqa_protocol")
     folder = Path(os.environ.get("DSLRXR_DATA", ROOT.parent / "shared" / "data")) / "niqa_edge"
     data = proto.load_niqa(folder)
     print(f"dark level {data.dark_level:.1f}; scales {np.round(data.scales, 3).tolist()}; "

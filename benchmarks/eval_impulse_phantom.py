@@ -1,6 +1,6 @@
-"""Figures for the impulse stage on the napari DSLR sample frame (core.phantom), per channel.
+"""Figures for the impulse stage on the napari DSLR sample frame (core.simulation.phantom), per channel.
 
-Same frame and truth as tests/core/test_impulse.py::test_dslr_phantom_pulses_per_channel_on_screen_and_in_the_dark
+Same frame and truth as tests/core/stages/test_impulse.py::test_dslr_phantom_pulses_per_channel_on_screen_and_in_the_dark
 (``make_dslr_radiograph((480, 720), seed=0)``; pulses injected into R, G, B; a pulse pixel is
 in channel X's truth where it moved X by more than 5 sigma of X's noise). Prints, per H, S, V
 channel, precision (flagged pixels that are injected pulse pixels) and recall on the screen,
@@ -23,12 +23,12 @@ from _harness import load_test_module
 def main() -> None:
     from scipy import ndimage as ndi
 
-    from napari_dslrxr.core.impulse import remove_impulses
-    from napari_dslrxr.core.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.stages.impulse import remove_impulses
+    from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 
     shape, seed = (480, 720), 0
     frames = make_dslr_radiograph(shape, seed=seed)
-    injected, truth = load_test_module("tests/core/test_impulse.py", "impulse_tests")._phantom_channel_truth(
+    injected, truth = load_test_module("tests/core/stages/test_impulse.py", "impulse_tests")._phantom_channel_truth(
         frames, make_dslr_radiograph(shape, seed=seed, pulse_rate=0.0))
     screen = frames.truth.screen_mask
     dark = ndi.distance_transform_edt(~screen) > 3 * frames.truth.blur_sigma_px

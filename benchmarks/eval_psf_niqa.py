@@ -33,7 +33,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _harness import peak_rss_mb, record  # noqa: E402
 
-from napari_dslrxr.core.edge_fit import EdgeImage, fit_edges  # noqa: E402
+from napari_dslrxr.core.psf.edge_fit import EdgeImage, fit_edges  # noqa: E402
 from napari_dslrxr.core.io import read_image  # noqa: E402
 
 DATA = Path(os.environ.get("DSLRXR_DATA", HERE.parent.parent / "shared" / "data")) / "niqa_edge"

@@ -27,8 +27,8 @@ def test_demo_writes_every_output(tmp_path, capsys):
 
 
 def test_demo_fits_the_frame_blur_and_deblurs_with_it(tmp_path, capsys):
-    from napari_dslrxr.core.deconvolution import REG_MAX, REG_MIN
-    from napari_dslrxr.core.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.stages.deconvolution import REG_MAX, REG_MIN
+    from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
     from napari_dslrxr.core.psf import load_psf
     from napari_dslrxr.demo import DEMO_SOURCE_TO_DETECTOR_MM, DEMO_SOURCE_TO_OBJECT_MM
 

@@ -89,8 +89,8 @@ def _json_hash(path: Path) -> str:
 def produce_outputs(folder: Path) -> dict[str, str]:
     """Generate the inputs in ``folder``, run the commands, return {output name: sha256}."""
     from napari_dslrxr.core.io import write_tiff
-    from napari_dslrxr.core.phantom import make_dslr_radiograph
-    from napari_dslrxr.core.simulator import phantom_thickness_mm
+    from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.simulation.simulator import phantom_thickness_mm
     from napari_dslrxr.demo import write_edge_radiographs
 
     inputs = folder / "input"

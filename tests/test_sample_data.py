@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from napari_dslrxr import _sample_data as samples
-from napari_dslrxr.core.phantom import make_dslr_radiograph
+from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 
 
 def test_dslr_set_is_the_seeded_phantom():
@@ -34,7 +34,7 @@ def test_open_samples_in_napari(make_napari_viewer):
 
 
 def test_edge_samples_have_the_geometry_and_the_blur_they_claim():
-    from napari_dslrxr.core.edge_fit import synthesize_edge_image
+    from napari_dslrxr.core.psf.edge_fit import synthesize_edge_image
     from napari_dslrxr.core.psf import PSFModel
 
     layers = samples.make_sample_edges()
@@ -56,7 +56,7 @@ def test_edge_samples_have_the_geometry_and_the_blur_they_claim():
 
 
 def test_scene_sample_recording_is_the_scene_plus_the_hidden_effect():
-    from napari_dslrxr.core.simulator import parse_scene, simulate_recording
+    from napari_dslrxr.core.simulation.simulator import parse_scene, simulate_recording
 
     (thickness, t_kw, _), (recording, r_kw, _) = samples.make_sample_scene()
     meta = r_kw["metadata"]

@@ -1,12 +1,12 @@
 """Sample data generated at run time by the core (nothing is downloaded).
 
 * a DSLR-like radiograph with impulsive pulses, its flat (open beam) and dark frames, from
-  :func:`napari_dslrxr.core.phantom.make_dslr_radiograph` (seeded, so always the same);
+  :func:`napari_dslrxr.core.simulation.phantom.make_dslr_radiograph` (seeded, so always the same);
 * two edge radiographs of the same blur at two object distances (each with a near-vertical
   and a near-horizontal edge) for the PSF edge picker, from
-  :func:`napari_dslrxr.core.edge_fit.synthesize_edge_image`;
+  :func:`napari_dslrxr.core.psf.edge_fit.synthesize_edge_image`;
 * a simulator scene (thickness map and simulated recording) from
-  :mod:`napari_dslrxr.core.simulator`.
+  :mod:`napari_dslrxr.core.simulation.simulator`.
 
 Each function returns napari layer-data tuples ``[(data, kwargs, layer_type), ...]``; the
 ``metadata`` of each layer records what it is (and, for the edges, the distances the PSF
@@ -26,7 +26,7 @@ PHANTOM_SEED = 0
 
 @lru_cache(maxsize=1)
 def _phantom():
-    from .core.phantom import make_dslr_radiograph
+    from .core.simulation.phantom import make_dslr_radiograph
 
     return make_dslr_radiograph(PHANTOM_SHAPE, seed=PHANTOM_SEED)
 
@@ -76,7 +76,7 @@ EDGE_BRIGHT_COUNTS = 4000.0
 
 @lru_cache(maxsize=1)
 def _edge_images() -> tuple:
-    from .core.edge_fit import synthesize_edge_image
+    from .core.psf.edge_fit import synthesize_edge_image
     from .core.psf import PSFModel
 
     truth = PSFModel(**EDGE_TRUTH)
@@ -120,7 +120,7 @@ SCENE_SEED = 0
 
 @lru_cache(maxsize=1)
 def _scene_recording() -> tuple:
-    from .core.simulator import parse_scene, phantom_thickness_mm, simulate_recording
+    from .core.simulation.simulator import parse_scene, phantom_thickness_mm, simulate_recording
 
     thickness = phantom_thickness_mm(SCENE_SHAPE)
     scene = parse_scene(SCENE_TABLE, thickness=thickness)

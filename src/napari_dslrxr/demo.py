@@ -1,7 +1,7 @@
 """``python -m napari_dslrxr.demo OUTDIR`` (what ``make demo`` runs).
 
 Generates a synthetic DSLR photograph of a scintillator (keystoned screen, uneven flat
-field, blur, photon and read noise, colour pulses; :mod:`napari_dslrxr.core.phantom`) with
+field, blur, photon and read noise, colour pulses; :mod:`napari_dslrxr.core.simulation.phantom`) with
 matching flat and dark frames, runs the whole pipeline on it exactly as ``dslrxr run`` does,
 and writes into OUTDIR:
 
@@ -45,12 +45,12 @@ def write_edge_radiographs(folder: Path, blur_sigma_px: float, *, seed: int = 0)
     """Write four noisy edge radiographs (two distances x two orientations) and their config.
 
     The plate edges are blurred by a Gaussian detector PSF of ``blur_sigma_px`` (as the frame
-    from :func:`~napari_dslrxr.core.phantom.make_dslr_radiograph`), with Poisson noise at about
+    from :func:`~napari_dslrxr.core.simulation.phantom.make_dslr_radiograph`), with Poisson noise at about
     4000 counts in the open beam. Returns the path of ``edges.toml``.
     """
     import tomli_w
 
-    from .core.edge_fit import synthesize_edge_image
+    from .core.psf.edge_fit import synthesize_edge_image
     from .core.io import write_tiff
     from .core.psf import PSFModel
 
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     from . import cli
     from .core.io import read_image, write_png, write_tiff
     from .core.params import PipelineParams, save_params
-    from .core.phantom import make_dslr_radiograph
+    from .core.simulation.phantom import make_dslr_radiograph
     from .core.pipeline import run_file
 
     argv = sys.argv[1:] if argv is None else argv

@@ -8,7 +8,7 @@ import pytest
 from napari_dslrxr.cli import main
 from napari_dslrxr.core.io import write_tiff
 from napari_dslrxr.core.params import PipelineParams, params_from_dict
-from napari_dslrxr.core.phantom import make_dslr_radiograph
+from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 
 
 @pytest.fixture(scope="module")

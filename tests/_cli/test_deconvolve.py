@@ -10,7 +10,7 @@ import tifffile
 from scipy import ndimage
 
 from napari_dslrxr.cli import main
-from napari_dslrxr.core import deconvolution as dc
+from napari_dslrxr.core.stages import deconvolution as dc
 from napari_dslrxr.core.psf import PSFModel, save_psf
 
 

@@ -15,8 +15,8 @@ from napari_dslrxr.core.metrics import global_contrast_factor, percentage_error
 
 
 def _impulse_tests():
-    """The synthetic-data helpers of tests/core/test_impulse.py (scene, patches, DNG writer)."""
-    path = Path(__file__).resolve().parents[1] / "core" / "test_impulse.py"
+    """The synthetic-data helpers of tests/core/stages/test_impulse.py (scene, patches, DNG writer)."""
+    path = Path(__file__).resolve().parents[1] / "core" / "stages" / "test_impulse.py"
     spec = importlib.util.spec_from_file_location("impulse_test_helpers", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

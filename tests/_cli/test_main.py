@@ -18,7 +18,8 @@ import typer
 from robustness.synthetic_files import write_dng
 
 from napari_dslrxr import cli
-from napari_dslrxr.core import io, provenance
+from napari_dslrxr.core import io
+from napari_dslrxr.core.io import provenance
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import tifffile
 
 from napari_dslrxr.cli import main
 from napari_dslrxr.core import io
-from napari_dslrxr.core.simulator import phantom_thickness_mm
+from napari_dslrxr.core.simulation.simulator import phantom_thickness_mm
 
 SCENE = """[geometry]
 source_to_detector_mm = 1200.0

@@ -93,7 +93,7 @@ def test_screenshot_deconvolution(make_napari_viewer, wait_for_worker, qtbot):
     from napari_dslrxr._widgets.deconvolution import DeconvolutionWidget
 
     viewer = _viewer(make_napari_viewer)
-    from napari_dslrxr.core.impulse import remove_impulses
+    from napari_dslrxr.core.stages.impulse import remove_impulses
 
     frames = samples._phantom()
     cleaned = remove_impulses(frames.raw_rgb).image  # pulses would ring in the deconvolution
@@ -119,8 +119,8 @@ def test_screenshot_deconvolution(make_napari_viewer, wait_for_worker, qtbot):
 def test_screenshot_contrast(make_napari_viewer, wait_for_worker):
     from napari_dslrxr._widgets.contrast import ContrastWidget
     from napari_dslrxr._widgets.flatfield import correct_with_layers
-    from napari_dslrxr.core.flatfield import FlatFieldParams
-    from napari_dslrxr.core.impulse import remove_impulses
+    from napari_dslrxr.core.stages.flatfield import FlatFieldParams
+    from napari_dslrxr.core.stages.impulse import remove_impulses
 
     viewer = _viewer(make_napari_viewer)
     frames = samples._phantom()

@@ -8,7 +8,7 @@ import pytest
 from napari_dslrxr.core.errors import InputError
 from napari_dslrxr.core.io import read_image, write_tiff
 from napari_dslrxr.core.params import PipelineParams
-from napari_dslrxr.core.phantom import make_dslr_radiograph
+from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 from napari_dslrxr.core.pipeline import PIPELINE_STAGES, drive, process_frame, run_file, run_pipeline
 
 

@@ -128,7 +128,7 @@ def test_fuzz_params_bytes(tmp_path, data):
 
 
 def _simulator():
-    from napari_dslrxr.core import simulator
+    from napari_dslrxr.core.simulation import simulator
 
     return simulator
 

@@ -1,7 +1,7 @@
 """``dslrxr psf fit`` and ``dslrxr psf kernel``: estimate the blur model from edges, sample kernels.
 
 ``psf fit CONFIG.toml -o psf.json`` fits the SABER source + detector model jointly to the edge
-radiographs listed in CONFIG (see :func:`napari_dslrxr.core.edge_fit.load_edge_config`)::
+radiographs listed in CONFIG (see :func:`napari_dslrxr.core.psf.edge_fit.load_edge_config`)::
 
     pixel_pitch_mm = 0.05
     [[edges]]
@@ -42,7 +42,9 @@ def register(app: typer.Typer) -> None:
                                                  "(0 disables)."),
     ) -> None:
         """Fit the source + detector blur model jointly to the edge radiographs in CONFIG."""
-        from ..core import edge_fit, io, provenance
+        from ..core import io
+        from ..core.io import provenance
+        from ..core.psf import edge_fit
         from ..core.psf import save_psf
 
         t0 = time.perf_counter()
@@ -80,7 +82,8 @@ def register(app: typer.Typer) -> None:
                                                     help="Cap on the kernel half-width (default 2048 px)."),
     ) -> None:
         """Write the blur kernel of PSF at one geometry: float32, odd size, sums to 1."""
-        from ..core import io, provenance
+        from ..core import io
+        from ..core.io import provenance
         from ..core.psf import load_psf
 
         t0 = time.perf_counter()

@@ -28,7 +28,7 @@ def read_kernel_tiff(path: Path):
     import numpy as np
     import tifffile
 
-    from ..core.deconvolution import validate_kernel
+    from ..core.stages.deconvolution import validate_kernel
     from ..core.errors import InputError
 
     if not path.is_file():
@@ -62,10 +62,10 @@ def register(app: typer.Typer) -> None:
         """Deconvolve INPUT with a known blur kernel and write a float32 TIFF."""
         import numpy as np
 
-        from ..core import deconvolution as dc
+        from ..core.stages import deconvolution as dc
         from ..core.errors import ParameterError
         from ..core.io import read_image, write_tiff
-        from ..core.provenance import write_sidecar
+        from ..core.io.provenance import write_sidecar
         from ..core.psf import load_psf
         from .common import ensure_parent
 

@@ -52,7 +52,7 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
     import numpy as np
 
     from ..core.errors import ParameterError
-    from ..core.impulse import (
+    from ..core.stages.impulse import (
         ImpulseParams,
         cfa_mask_to_mosaic,
         demosaic_cleaned_raw,
@@ -60,7 +60,7 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
         remove_impulses_cfa,
     )
     from ..core.io import check_not_an_input, read_image, write_tiff
-    from ..core.provenance import write_sidecar
+    from ..core.io.provenance import write_sidecar
     from .common import ensure_parent
 
     if space not in SPACES:

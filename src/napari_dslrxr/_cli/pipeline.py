@@ -83,7 +83,7 @@ def register(app: typer.Typer) -> None:
         """Run the whole pipeline on each input; write TIFF, PNG (and DICOM) with JSON sidecars."""
         from ..core.params import PipelineParams, load_params, params_to_dict
         from ..core.pipeline import output_paths
-        from ..core.provenance import sidecar_path
+        from ..core.io.provenance import sidecar_path
 
         params = load_params(config) if config is not None else PipelineParams()
         if dicom:

@@ -29,7 +29,9 @@ def register(app: typer.Typer) -> None:
         seed: int = typer.Option(0, "--seed", min=0, help="Noise seed, >= 0 (same seed, same bytes)."),
     ) -> None:
         """Simulate a recording of the scene through the imaging chain."""
-        from ..core import io, provenance, simulator
+        from ..core import io
+        from ..core.io import provenance
+        from ..core.simulation import simulator
 
         t0 = time.perf_counter()
         sc = simulator.load_scene(scene)
@@ -55,9 +57,11 @@ def register(app: typer.Typer) -> None:
             None, "--candidates", help="Comma-separated library terms to consider (default all)."),
     ) -> None:
         """Locate and name what the base model of the scene leaves out of a recording."""
-        from ..core import diagnosis, io, report, simulator
+        from ..core import diagnosis, io
+        from ..core.diagnosis import report
+        from ..core.simulation import simulator
         from ..core.errors import InputError
-        from ..core.physics_terms import get_term
+        from ..core.simulation.physics_terms import get_term
 
         t0 = time.perf_counter()
         sc = simulator.load_scene(scene)

@@ -2,8 +2,8 @@
 
 Wraps the display stages of the core, as :func:`napari_dslrxr.core.pipeline.enhance_radiograph`
 chains them: value-of-interest scaling, then
-:func:`~napari_dslrxr.core.pipeline.apply_display_stages` (:mod:`~napari_dslrxr.core.dynamic_range`
-latitude reduction, :mod:`~napari_dslrxr.core.contrast` MUSICA-style multiscale contrast and the
+:func:`~napari_dslrxr.core.pipeline.apply_display_stages` (:mod:`~napari_dslrxr.core.stages.dynamic_range`
+latitude reduction, :mod:`~napari_dslrxr.core.stages.contrast` MUSICA-style multiscale contrast and the
 sigmoid display curve). The value-of-interest scaling does not depend on the sliders, so it is done
 once per input and cached; a slider move runs only the three later stages. Two kinds of input:
 
@@ -11,7 +11,7 @@ once per input and cached; a slider move runs only the three later stages. Two k
   value-of-interest scaled attenuation image and the screen mask by the core pipeline with
   the display stages switched off (:func:`napari_dslrxr.core.pipeline.process_frame`);
 * **display radiograph** (DICOM CR/DR, bright = bone): used as it is; a collimated field
-  (:func:`napari_dslrxr.core.region.detect_collimation`) is its region, as in the core.
+  (:func:`napari_dslrxr.core.stages.region.detect_collimation`) is its region, as in the core.
 
 The live preview runs on the whole image, area-downsampled to at most ``preview_max_pixels``
 (default one megapixel, about what a screen shows), in a thread worker, debounced and

@@ -1,4 +1,4 @@
-"""Deconvolution widget over :mod:`napari_dslrxr.core.deconvolution`.
+"""Deconvolution widget over :mod:`napari_dslrxr.core.stages.deconvolution`.
 
 The blur kernel comes from a kernel image layer (for example the one the PSF edge picker
 adds) or from a ``psf.json`` plus the geometry of the radiograph (source-to-object and
@@ -20,7 +20,7 @@ import numpy as np
 from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, FloatLogSlider, FloatSpinBox,
                               PushButton, create_widget)
 
-from ..core.deconvolution import (METHODS, DeconvolutionParams, deconvolve, deconvolve_steps,
+from ..core.stages.deconvolution import (METHODS, DeconvolutionParams, deconvolve, deconvolve_steps,
                                   estimate_regularisation)
 from ..core.errors import ParameterError
 from ..core.psf import load_psf

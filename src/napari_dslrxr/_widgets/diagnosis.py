@@ -1,7 +1,7 @@
 """Mismatch diagnosis widget over :func:`napari_dslrxr.core.diagnosis.diagnose_scene`.
 
 Inputs: a recording layer (single-channel linear DN) and the scene it is supposed to show,
-either a scene TOML file (:func:`napari_dslrxr.core.simulator.load_scene`) or, without a
+either a scene TOML file (:func:`napari_dslrxr.core.simulation.simulator.load_scene`) or, without a
 file, the scene table in the recording layer's metadata (the sample scene has one) with the
 thickness map from a layer. The diagnosis runs in a thread worker (progress bar with
 cancel). Results: the normalised residual maps before and after the added terms as layers
@@ -10,7 +10,7 @@ also summed over 4x4 blocks (``"residual z 4x4 (...)"``, still unit variance und
 where smooth mismatch stands out of the pixel noise),
 the mismatch regions as a Shapes layer, and the named effects with their numbers in the
 read-out. "Write report" writes ``report.html`` and the JSON/TIFF files with
-:func:`napari_dslrxr.core.report.write_report`; "Open report" shows it in the web browser.
+:func:`napari_dslrxr.core.diagnosis.report.write_report`; "Open report" shows it in the web browser.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from magicgui.widgets import Container, FileEdit, PushButton, SpinBox, create_wi
 
 from ..core.diagnosis import DiagnosisOptions, DiagnosisResult, diagnose_scene, multiscale_maps
 from ..core.errors import ParameterError
-from ..core.report import write_report
-from ..core.simulator import Scene, load_scene, parse_scene
+from ..core.diagnosis.report import write_report
+from ..core.simulation.simulator import Scene, load_scene, parse_scene
 from ._common import WorkCancelled, guarded, notify_info, readout_label, run_in_worker, show_layer
 
 if TYPE_CHECKING:

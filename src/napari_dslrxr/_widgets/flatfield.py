@@ -1,4 +1,4 @@
-"""Flat-field widget over :mod:`napari_dslrxr.core.flatfield`.
+"""Flat-field widget over :mod:`napari_dslrxr.core.stages.flatfield`.
 
 The user picks the radiograph, the flat (open beam) and optionally the dark frame, each as a
 layer; a file chosen with the "flat file"/"dark file" pickers is read with the core reader and
@@ -17,7 +17,7 @@ import numpy as np
 from magicgui.widgets import CheckBox, Container, FileEdit, FloatSpinBox, PushButton, create_widget
 
 from ..core.errors import ParameterError
-from ..core.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
+from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
 from ..core.io import read_image
 from ._common import debounced, guarded, notify_error, readout_label, run_in_worker, same_geometry, show_layer
 from ._registry import register_stage_widget

@@ -1,4 +1,4 @@
-"""Impulse-noise (zinger) removal widget over :func:`napari_dslrxr.core.impulse.remove_impulses`.
+"""Impulse-noise (zinger) removal widget over :func:`napari_dslrxr.core.stages.impulse.remove_impulses`.
 
 The user picks an image layer, the colour space and the passes per channel (H, S, V for
 colour, grey for grey images). The cleaned image appears as ``"<layer> cleaned"`` and the
@@ -15,7 +15,7 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, PushButton, SpinBox, create_widget
 
 from ..core.errors import ParameterError
-from ..core.impulse import ImpulseParams, ImpulseResult, remove_impulses
+from ..core.stages.impulse import ImpulseParams, ImpulseResult, remove_impulses
 from ._common import guarded, readout_label, run_in_worker, same_geometry, show_layer
 from ._registry import register_stage_widget
 

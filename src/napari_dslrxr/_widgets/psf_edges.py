@@ -1,4 +1,4 @@
-"""Edge ROI picker for PSF fitting, over :func:`napari_dslrxr.core.edge_fit.fit_edges`.
+"""Edge ROI picker for PSF fitting, over :func:`napari_dslrxr.core.psf.edge_fit.fit_edges`.
 
 Workflow: choose an edge radiograph, enter its source-to-object and source-to-detector
 distances (kept in the layer's metadata, so each image keeps its own), press "Draw ROIs" and
@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from magicgui.widgets import ComboBox, Container, FileEdit, FloatSpinBox, PushButton, create_widget
 
-from ..core.edge_fit import EdgeImage, fit_edges
+from ..core.psf.edge_fit import EdgeImage, fit_edges
 from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
 from ._common import WorkCancelled, guarded, notify_info, readout_label, run_in_worker, show_layer

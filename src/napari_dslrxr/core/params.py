@@ -20,15 +20,15 @@ from pathlib import Path
 
 import tomli_w
 
-from .contrast import ContrastParams
-from .dynamic_range import DynamicRangeParams
+from .stages.contrast import ContrastParams
+from .stages.dynamic_range import DynamicRangeParams
 from .errors import InputError, ParameterError
-from .flatfield import FlatFieldParams
-from .region import RegionParams
+from .stages.flatfield import FlatFieldParams
+from .stages.region import RegionParams
 
 
 def _impulse_class():
-    from .impulse import ImpulseParams
+    from .stages.impulse import ImpulseParams
 
     return ImpulseParams
 

@@ -26,12 +26,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .contrast import enhance_contrast
-from .dynamic_range import reduce_dynamic_range, sigmoid_lut
+from .stages.contrast import enhance_contrast
+from .stages.dynamic_range import reduce_dynamic_range, sigmoid_lut
 from .errors import InputError, OutputError, ParameterError
-from .flatfield import FlatReference, apply_flat_field, prepare_flat_reference
+from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
 from .params import PipelineParams, params_to_toml, validate_params
-from .region import Region, detect_collimation, detect_screen, polygon_mask, rectify, voi_window
+from .stages.region import Region, detect_collimation, detect_screen, polygon_mask, rectify, voi_window
 
 #: Stage names, in the order their progress steps are yielded.
 PIPELINE_STAGES = ("impulse", "flatfield", "region", "deblur", "grey_log", "dynamic_range", "contrast", "display")
@@ -80,7 +80,7 @@ def to_uint16(display: np.ndarray) -> np.ndarray:
 
 
 def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> np.ndarray:
-    from .impulse import remove_impulses
+    from .stages.impulse import remove_impulses
 
     impulse = params.impulse
     if not any((impulse.passes_h, impulse.passes_s, impulse.passes_v, impulse.passes_grey)):
@@ -94,7 +94,7 @@ def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> 
 
 def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, params: PipelineParams,
                   results: dict) -> np.ndarray:
-    from .deconvolution import check_reg, deconvolve, estimate_regularisation
+    from .stages.deconvolution import check_reg, deconvolve, estimate_regularisation
 
     # scale each channel to about [0, 1] over the region (the solver's expected range)
     chans = colour if colour.ndim == 3 else colour[..., None]
@@ -285,9 +285,9 @@ def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
 
     The display end of the chain, shared by :func:`run_pipeline`, :func:`enhance_radiograph`
     and the napari contrast widget: dynamic-range / latitude reduction
-    (:func:`~napari_dslrxr.core.dynamic_range.reduce_dynamic_range`), multiscale contrast
-    (:func:`~napari_dslrxr.core.contrast.enhance_contrast`), the sigmoid display curve
-    (:func:`~napari_dslrxr.core.dynamic_range.sigmoid_lut`), then the pixels outside the
+    (:func:`~napari_dslrxr.core.stages.dynamic_range.reduce_dynamic_range`), multiscale contrast
+    (:func:`~napari_dslrxr.core.stages.contrast.enhance_contrast`), the sigmoid display curve
+    (:func:`~napari_dslrxr.core.stages.dynamic_range.sigmoid_lut`), then the pixels outside the
     region set to black (0) or white (1) as ``params.output.outside_region`` says.
 
     Parameters
@@ -331,7 +331,7 @@ def scale_display_radiograph(image: np.ndarray, params: PipelineParams | None = 
         Uses ``region`` (VOI percentiles, ``detect_collimation``, ``collimation_inset_px``).
     mask : ndarray, bool, optional
         Region of interest for the statistics. Default: when ``params.region.detect_collimation``
-        is true, the exposed field found by :func:`~napari_dslrxr.core.region.detect_collimation`;
+        is true, the exposed field found by :func:`~napari_dslrxr.core.stages.region.detect_collimation`;
         None (all pixels) when no collimation is found or detection is off.
 
     Returns
@@ -457,7 +457,7 @@ def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Seq
     """
     from .. import __version__
     from .io import write_png, write_tiff
-    from .provenance import write_sidecar
+    from .io.provenance import write_sidecar
 
     written = []
     sidecar_results = {**result.results, "voi_window": list(result.voi_window)}
@@ -473,7 +473,7 @@ def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Seq
         elif kind == "png":
             write_png(path, preview_uint8(result.display, params.output.preview_max_side_px), inputs=inputs)
         elif kind == "dicom":
-            from .dicom import write_dicom_dx
+            from .io.dicom import write_dicom_dx
 
             write_dicom_dx(path, result.display_uint16(), pixel_spacing_mm=spacing,
                            uid_seed=uid_seed or run_identity(inputs, params), patient=patient,
@@ -541,7 +541,7 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
         black = 0.0  # rawpy's linear RGB has the black level subtracted already
         if loaded.raw is not None and params.impulse.passes_grey > 0:
             # stage (i) on the Bayer planes, before demosaicing spreads each zinger
-            from .impulse import demosaic_cleaned_raw, remove_impulses_cfa
+            from .stages.impulse import demosaic_cleaned_raw, remove_impulses_cfa
 
             cfa = remove_impulses_cfa(loaded.raw.cfa_planes, params.impulse)
             image = demosaic_cleaned_raw(input_path, cfa.image, loaded.raw)

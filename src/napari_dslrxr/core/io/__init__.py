@@ -1,0 +1,26 @@
+"""Files in and out: image readers and writers, DICOM DX export and provenance sidecars.
+
+* :mod:`.image_files` - checked readers for TIFF, PNG, DICOM and camera raw, atomic TIFF/PNG
+  writers, structured (TOML/JSON) files and checksums;
+* :mod:`.dicom` - the DICOM DX writer with deterministic UIDs;
+* :mod:`.provenance` - the JSON sidecar written beside every output (parameters, version, input
+  checksums, timings).
+
+Depends only on :mod:`napari_dslrxr.core.errors`; every other area builds on it.
+"""
+
+from __future__ import annotations
+
+from .._lazy import lazy_exports
+
+#: Public names, by the module that defines them (imported on first use).
+_PUBLIC: dict[str, tuple[str, ...]] = {
+    "image_files": ("RAW_EXTENSIONS", "TIFF_EXTENSIONS", "PNG_EXTENSIONS", "DICOM_EXTENSIONS",
+        "MIN_SIDE_PX", "DEFAULT_MAX_PIXELS", "max_pixels_limit", "RawFrame", "LoadedImage",
+        "validate_image", "read_image", "read_raw", "read_structured_file", "postprocess_linear",
+        "file_sha256", "check_not_an_input", "atomic_write", "write_tiff", "write_png"),
+    "dicom": ("DX_FOR_PRESENTATION", "ALLOWED_PATIENT_FIELDS", "deterministic_uid", "write_dicom_dx"),
+    "provenance": ("sidecar_path", "to_jsonable", "describe_inputs", "library_versions", "write_sidecar"),
+}
+
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

@@ -1,0 +1,37 @@
+"""The pipeline stages, in the order a frame goes through them.
+
+* :mod:`.impulse` - impulse-noise (zinger) removal in HSV counts or on the CFA planes;
+* :mod:`.flatfield` - dark subtraction and gain (flat-field) correction from open-beam frames;
+* :mod:`.region` - the screen in the photograph, its rectification, the collimated field and the
+  VOI window;
+* :mod:`.deconvolution` - deblurring with a known kernel (adaptive, Wiener, regularised least squares);
+* :mod:`.dynamic_range` - latitude reduction and the sigmoid display curve;
+* :mod:`.contrast` - multiscale (Laplacian-pyramid) contrast enhancement.
+
+Each stage is a plain function over numpy arrays with a parameter dataclass; the pipeline
+(:mod:`napari_dslrxr.core.pipeline`) chains them.
+"""
+
+from __future__ import annotations
+
+from .._lazy import lazy_exports
+
+#: Public names, by the module that defines them (imported on first use).
+_PUBLIC: dict[str, tuple[str, ...]] = {
+    "impulse": ("MEDIAN_RESIDUAL_VARIANCE_FACTOR", "ImpulseParams", "ImpulseResult", "rgb_to_hsv_counts",
+        "hsv_counts_to_rgb", "dominant_hue", "remove_impulses", "remove_impulses_cfa",
+        "cfa_mask_to_mosaic", "demosaic_cleaned_raw"),
+    "flatfield": ("FlatFieldParams", "FlatReference", "remove_bright_pulses", "combine_frames",
+        "prepare_flat_reference", "apply_flat_field", "flat_field_correct"),
+    "region": ("RegionParams", "Region", "order_corners", "polygon_mask", "shrink_polygon",
+        "detect_screen", "voi_window", "rectify", "detect_collimation"),
+    "deconvolution": ("METHODS", "DeconvolutionParams", "check_method", "check_reg", "validate_kernel",
+        "robust_range", "estimate_noise_sigma", "gradient_spectrum", "fo_derivative_spectrum",
+        "kernel_otf", "pad_and_taper", "estimate_regularisation", "deconvolve_steps", "deconvolve"),
+    "dynamic_range": ("DynamicRangeParams", "masked_lowpass", "edge_aware_lowpass", "reduce_dynamic_range",
+        "sigmoid_lut"),
+    "contrast": ("ContrastParams", "auto_levels", "laplacian_pyramid", "reconstruct_pyramid",
+        "robust_sigma", "map_coefficients", "enhance_contrast"),
+}
+
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

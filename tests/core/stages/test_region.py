@@ -1,0 +1,208 @@
+"""Screen detection on rotated / keystoned quadrilaterals; VOI window."""
+
+import cv2
+import numpy as np
+import pytest
+
+from napari_dslrxr.core.errors import ParameterError
+from napari_dslrxr.core.stages.region import RegionParams, detect_screen, order_corners, rectify, voi_window
+
+
+def _quad_frame(rng, shape, corners):
+    h, w = shape
+    mask = np.zeros(shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(corners * 16).astype(np.int32)], 1, shift=4)
+    truth = mask.astype(bool)
+    bright = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), 1.5) * 3000.0
+    # some dark "object" inside the screen (attenuating), not touching the edge
+    yy, xx = np.mgrid[0:h, 0:w]
+    centre = corners.mean(axis=0)
+    blob = ((xx - centre[0]) ** 2 / (0.2 * w) ** 2 + (yy - centre[1]) ** 2 / (0.2 * h) ** 2) < 1
+    bright[blob] *= 0.2
+    noisy = rng.poisson(np.maximum(bright, 0) + 20.0).astype(np.float32) + rng.normal(0, 5, shape)
+    return noisy.astype(np.float32), truth
+
+
+@pytest.mark.parametrize("shape,rotation,keystone", [((400, 600), 3.0, 0.15), ((512, 512), -8.0, 0.25),
+                                                     ((360, 480), 15.0, 0.05), ((300, 500), 0.0, 0.3)])
+def test_corner_error_and_iou(rng, shape, rotation, keystone):
+    h, w = shape
+    half_w, half_h = 0.38 * w, 0.38 * h
+    corners = np.array([[-half_w * (1 - keystone), -half_h], [half_w * (1 - keystone), -half_h],
+                        [half_w, half_h], [-half_w, half_h]])
+    a = np.deg2rad(rotation)
+    corners = corners @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]) + [w / 2, h / 2]
+    frame, truth = _quad_frame(rng, shape, corners)
+    region = detect_screen(frame, RegionParams(shrink_fraction=0.0))
+    diagonal = np.hypot(h, w)
+    error = np.hypot(*(region.polygon_xy - order_corners(corners)).T).max()
+    iou = (region.mask & truth).sum() / (region.mask | truth).sum()
+    assert error < 0.005 * diagonal, error
+    assert iou > 0.98, iou
+    # a naive bounding box of the thresholded image is much worse on keystoned screens
+    ys, xs = np.nonzero(frame > 1500)
+    box = np.zeros(shape, bool)
+    box[ys.min():ys.max() + 1, xs.min():xs.max() + 1] = True
+    assert (box & truth).sum() / (box | truth).sum() < iou
+
+
+def test_user_polygon_overrides_detection(rng):
+    frame = rng.normal(100, 5, (100, 120)).astype(np.float32)
+    poly = [[10, 10], [100, 12], [98, 90], [12, 88]]
+    region = detect_screen(frame, RegionParams(polygon_xy=poly))
+    assert not region.detected and np.allclose(region.polygon_xy, poly)
+    assert region.mask[50, 50] and not region.mask[5, 5]
+    with pytest.raises(ParameterError, match="4"):
+        detect_screen(frame, RegionParams(polygon_xy=[[0, 0], [1, 1]]))
+
+
+def test_voi_excludes_direct_exposure(rng):
+    obj = rng.normal(0.6, 0.1, 60000)
+    direct = rng.normal(0.05, 0.01, 40000)  # large unattenuated background mode
+    lo, hi = voi_window(np.concatenate([obj, direct]))
+    assert lo > 0.25  # window starts at the object, not the background
+    lo2, _ = voi_window(np.concatenate([obj, direct]), exclude_direct_exposure=False)
+    assert lo2 < 0.1
+
+
+def test_rectify_restores_rectangle():
+    img = np.zeros((200, 300), np.float32)
+    quad = np.array([[60, 40], [240, 50], [260, 170], [40, 160]], np.float64)
+    cv2.fillPoly(img, [quad.astype(np.int32)], 1.0)
+    out = rectify(img, quad)
+    assert out[2:-2, 2:-2].min() > 0.9
+
+
+# --------------------------------------------------------------------------- collimation
+
+
+def _collimated_radiograph(rng, shape, margins, rotation_deg, noise=0.02):
+    """Display-orientation radiograph (bright = unexposed) with a rotated rectangular field.
+
+    ``margins`` = (left, top, right, bottom) distances (px) of the blades from the frame's
+    sides at the frame centre's level; None = blade absent. Returns the image (float32, about
+    0..1) and the true field mask (pixel centres inside every blade).
+    """
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    a = np.deg2rad(rotation_deg)
+    # coordinates along the field's (rotated) axes, centred on the frame centre
+    u = (xx - w / 2) * np.cos(a) + (yy - h / 2) * np.sin(a)
+    v = -(xx - w / 2) * np.sin(a) + (yy - h / 2) * np.cos(a)
+    left, top, right, bottom = margins
+    truth = np.ones(shape, bool)
+    for margin, coord, limit, sign in ((left, u, w / 2, -1), (right, u, w / 2, 1), (top, v, h / 2, -1),
+                                       (bottom, v, h / 2, 1)):
+        if margin is not None:
+            truth &= sign * coord < limit - margin
+    # anatomy: direct exposure (dark) with a soft-tissue ellipse and a bone rod inside the field
+    field = np.full(shape, 0.08)
+    tissue = ((xx - 0.5 * w) / (0.28 * w)) ** 2 + ((yy - 0.5 * h) / (0.6 * h)) ** 2 < 1
+    field[tissue] = 0.45
+    field[tissue & (np.abs(xx - 0.47 * w) < 0.04 * w)] = 0.8
+    blade = 0.92 + 0.04 * (yy / h)  # nearly uniform, a slight scatter gradient
+    image = np.where(truth, field, blade)
+    image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.2)
+    image += rng.normal(0, noise, shape).astype(np.float32)
+    return (image * 1000).astype(np.float32), truth
+
+
+@pytest.mark.parametrize("shape,margins,rotation", [
+    ((400, 500), (60, 40, 80, 50), 3.0),          # four blades, rotated
+    ((480, 360), (30, 90, 45, 20), -6.0),         # four blades at other positions, other tilt
+    ((400, 500), (70, None, 60, None), 2.0),      # two side blades, open top and bottom (like RG3)
+    ((360, 480), (None, 50, 90, 35), 0.0),        # left blade absent
+])
+def test_collimation_field_against_truth(rng, shape, margins, rotation):
+    from napari_dslrxr.core.stages.region import detect_collimation
+
+    image, truth = _collimated_radiograph(rng, shape, margins, rotation)
+    region = detect_collimation(image)
+    assert region.detected
+    iou = (region.mask & truth).sum() / (region.mask | truth).sum()
+    assert iou > 0.98, iou
+    # every wrong pixel lies within 3 px of the true field's edge
+    edge = truth ^ cv2.erode(truth.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    distance = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 5)
+    wrong = region.mask ^ truth
+    assert wrong.sum() == 0 or distance[wrong].max() <= 3.0, distance[wrong].max()
+    # baseline: the whole frame (today's region for display radiographs) has IoU = field / frame
+    assert truth.sum() / truth.size < 0.85
+    # inset moves every blade inwards: the mask shrinks but stays inside the field
+    inset = detect_collimation(image, inset_px=5.0)
+    assert not (inset.mask & ~region.mask).any() and inset.mask.sum() < region.mask.sum()
+
+
+def test_no_collimation_gives_the_whole_frame(rng):
+    from napari_dslrxr.core.stages.region import detect_collimation
+
+    image, truth = _collimated_radiograph(rng, (300, 400), (None, None, None, None), 0.0)
+    assert truth.all()
+    region = detect_collimation(image)
+    assert not region.detected and region.mask.all()
+    np.testing.assert_array_equal(region.polygon_xy, [[0, 0], [399, 0], [399, 299], [0, 299]])
+    # flat, constant and pure-noise images never raise
+    for plain in (np.zeros((64, 80), np.uint16), rng.normal(100, 10, (128, 128)), np.full((50, 60), 7.0)):
+        assert not detect_collimation(plain).detected
+
+
+def test_collimation_bad_parameters(rng):
+    from napari_dslrxr.core.errors import InputError
+    from napari_dslrxr.core.stages.region import detect_collimation
+
+    image = rng.normal(0, 1, (64, 64))
+    with pytest.raises(ParameterError, match="max_tilt_deg"):
+        detect_collimation(image, max_tilt_deg=45)
+    with pytest.raises(ParameterError, match="inset_px"):
+        detect_collimation(image, inset_px=-1)
+    with pytest.raises(InputError, match="2-D"):
+        detect_collimation(np.zeros((4, 64, 64)))
+
+
+def test_collimation_on_real_cr(shared_data):
+    from napari_dslrxr.core.io import read_image
+    from napari_dslrxr.core.stages.region import detect_collimation
+
+    leg = read_image(shared_data / "cr_dicom" / "RG3_UNCR.dcm").data
+    region = detect_collimation(leg)
+    assert region.detected
+    h, w = leg.shape
+    # two vertical blades; the field is open at the top and bottom
+    xs = region.polygon_xy[:, 0]
+    assert 380 < xs[0] < 520 and 380 < xs[3] < 520 and 1170 < xs[1] < 1310 and 1170 < xs[2] < 1310, xs
+    assert region.polygon_xy[0, 1] < 0 and region.polygon_xy[2, 1] > h - 1
+    # the unexposed band (saturated, bright) is outside; the leg and the air beside it inside
+    band = leg >= 1015
+    outside = ~region.mask
+    assert band[:, : w // 5].mean() > 0.95 and band[:, -w // 5:].mean() > 0.95
+    assert (band & region.mask).sum() < 0.02 * band.sum()
+    assert outside[:, : w // 5].all() and outside[:, -w // 5:].all()
+    assert region.mask[:, 520:1170].all()
+    # RG1 (chest) has no collimator band: the whole frame
+    chest = read_image(shared_data / "cr_dicom" / "RG1_UNCR.dcm").data
+    assert not detect_collimation(chest).detected
+
+
+def test_enhance_radiograph_uses_the_collimated_field(rng):
+    import dataclasses
+
+    from napari_dslrxr.core.params import PipelineParams
+    from napari_dslrxr.core.pipeline import enhance_radiograph
+
+    h, w = 300, 400
+    image, truth = _collimated_radiograph(rng, (h, w), (70, None, 60, None), 2.0)
+    params = PipelineParams()
+    off = dataclasses.replace(params, region=dataclasses.replace(params.region, detect_collimation=False))
+    white = dataclasses.replace(params, output=dataclasses.replace(params.output, outside_region="white"))
+    with_field, without, white_out = (enhance_radiograph(image, p) for p in (params, off, white))
+    far_outside = ~cv2.dilate(truth.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    assert np.all(with_field[far_outside] == 0.0) and np.all(white_out[far_outside] == 1.0)
+    # without the field, the band is processed as anatomy (grey, not the fill value)
+    assert without[far_outside].mean() > 0.5
+    # the value-of-interest window and low-pass now see only the field: bone vs air contrast rises
+    yy, xx = np.mgrid[0:h, 0:w]
+    bone = truth & (np.abs(xx - 0.47 * w) < 0.02 * w) & (np.abs(yy - h / 2) < 0.2 * h)
+    direct = truth & (np.abs(xx - 0.27 * w) < 0.02 * w) & (np.abs(yy - h / 2) < 0.2 * h)
+    assert bone.any() and direct.any()
+    spread = [out[bone].mean() - out[direct].mean() for out in (with_field, without)]
+    assert spread[0] > spread[1] + 0.05, spread
