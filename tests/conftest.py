@@ -1,4 +1,10 @@
-"""Shared fixtures: the real data folder (skipped with a reason when absent) and seeded RNGs."""
+"""Shared fixtures: the real data folder (skipped with a reason when absent) and seeded RNGs.
+
+Every test that uses the ``shared_data`` fixture, directly or through another fixture, gets the
+``realdata`` marker at collection, so ``-m "not realdata"`` leaves out the tests that read the
+real data; a test that asks for the folder only at run time (``request.getfixturevalue``) carries
+the marker itself.
+"""
 
 from __future__ import annotations
 
@@ -15,6 +21,13 @@ def shared_data_dir() -> Path:
     """The real data folder: $DSLRXR_DATA, default ../shared/data beside the checkout."""
     env = os.environ.get("DSLRXR_DATA")
     return Path(env) if env else (REPO_ROOT.parent / "shared" / "data")
+
+
+def pytest_collection_modifyitems(config, items):
+    # fixturenames is the whole fixture closure: a fixture built on shared_data counts too
+    for item in items:
+        if "shared_data" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.realdata)
 
 
 @pytest.fixture(scope="session")

@@ -4,11 +4,13 @@ import json
 
 import numpy as np
 import pydicom
+import pytest
 
 from napari_dslrxr.core.io import read_image
 from napari_dslrxr.demo import main
 
 
+@pytest.mark.slow
 def test_demo_writes_every_output(tmp_path, capsys):
     assert main([str(tmp_path), "--small"]) == 0
     for name in ("radiograph_dslrxr.tif", "radiograph_dslrxr.png", "radiograph_dslrxr.dcm"):
@@ -26,6 +28,7 @@ def test_demo_writes_every_output(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_demo_fits_the_frame_blur_and_deblurs_with_it(tmp_path, capsys):
     from napari_dslrxr.core.stages.deconvolution import REG_MAX, REG_MIN
     from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph

@@ -130,6 +130,7 @@ def produced(tmp_path_factory) -> dict[str, str]:
     return produce_outputs(tmp_path_factory.mktemp("golden"))
 
 
+@pytest.mark.slow
 def test_outputs_match_the_golden_hashes(produced):
     if REGENERATE:
         GOLDEN_FILE.write_text(json.dumps(produced, indent=2, sort_keys=True) + "\n", encoding="utf-8")

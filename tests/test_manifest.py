@@ -57,6 +57,7 @@ def test_every_contribution_points_at_a_declared_command():
         assert {item["command"] for item in menu_items if "command" in item} <= command_ids
 
 
+@pytest.mark.slow
 def test_wheel_contains_the_manifest(tmp_path):
     """Build the wheel from a copy of the sources (no network, no build isolation)."""
     pytest.importorskip("setuptools")

@@ -38,6 +38,7 @@ def edge_folder(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_psf_fit_then_kernel(edge_folder, tmp_path, capsys):
     psf_path = tmp_path / "psf.json"
     assert main(["psf", "fit", str(edge_folder / "edges.toml"), "-o", str(psf_path)]) == 0

@@ -42,6 +42,7 @@ def _apply(widget, wait_for_worker, **values):
     return widget.result.copy()
 
 
+@pytest.mark.slow
 def test_latitude_and_bone_contrast_sliders(docked, phantom, wait_for_worker, errors_shown):
     viewer, widget = docked
     assert widget._kind.value == LINEAR
@@ -69,6 +70,7 @@ def test_latitude_and_bone_contrast_sliders(docked, phantom, wait_for_worker, er
     assert params["dynamic_range"].latitude == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_live_preview_is_downsampled_and_matches_the_full_result(docked, qtbot, wait_for_worker):
     viewer, widget = docked
     full = _apply(widget, wait_for_worker, bone_contrast=2.5)

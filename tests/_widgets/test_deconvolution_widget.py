@@ -54,6 +54,7 @@ def docked(make_napari_viewer, rng):
     return viewer, widget, sharp, blurred
 
 
+@pytest.mark.slow
 def test_whole_image_is_sharper_than_the_input(docked, wait_for_worker):
     viewer, widget, sharp, blurred = docked
     widget._method.value = "rls"

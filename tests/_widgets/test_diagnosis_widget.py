@@ -24,6 +24,7 @@ def docked(make_napari_viewer):
     return viewer, widget, thickness, recording
 
 
+@pytest.mark.slow
 def test_hidden_glare_is_named_with_residual_layers_and_report(docked, wait_for_worker, tmp_path, monkeypatch,
                                                                errors_shown):
     viewer, widget, thickness, recording = docked

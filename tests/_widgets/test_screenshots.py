@@ -136,6 +136,7 @@ def test_screenshot_contrast(make_napari_viewer, wait_for_worker):
     snap(viewer, "contrast")
 
 
+@pytest.mark.slow
 def test_screenshot_psf_edges(make_napari_viewer, wait_for_worker):
     from napari_dslrxr._widgets.psf_edges import PSFEdgeWidget
 
@@ -153,6 +154,7 @@ def test_screenshot_psf_edges(make_napari_viewer, wait_for_worker):
     snap(viewer, "psf_edges")
 
 
+@pytest.mark.slow
 def test_screenshot_diagnosis(make_napari_viewer, wait_for_worker):
     from napari_dslrxr._widgets.diagnosis import DiagnosisWidget
 

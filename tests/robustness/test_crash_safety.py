@@ -80,6 +80,7 @@ def _start(batch: Path, out: Path, *extra: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
 
 
+@pytest.mark.slow
 def test_killed_batch_leaves_nothing_partial_and_a_rerun_completes(batch, tmp_path):
     inputs_before = _checksums(batch)
     out = tmp_path / "out"

@@ -132,7 +132,8 @@ def test_fuzz_command_line(file_pool, tmp_path, capsys, data):
                 file_pool[n].write_bytes(content)
 
 
-@pytest.mark.parametrize("name", ["truncated.tif", "text.tif", "cut.dng", "stripped"])
+@pytest.mark.parametrize("name", ["truncated.tif", "text.tif", "cut.dng",
+                                  pytest.param("stripped", marks=pytest.mark.realdata)])
 def test_real_process_prints_one_line_and_no_traceback(file_pool, tmp_path, name, request):
     """The installed entry point, in its own process: C-level stderr (LibRaw) would show here."""
     if name == "stripped":

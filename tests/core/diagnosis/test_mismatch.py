@@ -130,6 +130,7 @@ def test_null_with_pulses_says_nothing_missing(scene):
     assert not result.mask[truth["pulse_mask"] & (recording - truth["expected"] > 200)].any()
 
 
+@pytest.mark.slow
 def test_two_concealed_effects_are_both_found(scene):
     truth = {"heel_effect": {"h1": 0.008, "h2": -0.006, "angle_deg": 90.0},
              "veiling_glare": {"eta": 0.012, "range_mm": 1.5}}

@@ -172,6 +172,7 @@ def test_reference_and_spots_are_sane(niqa):
     assert np.all(np.abs(niqa.scales - 1.0) < 0.4)
 
 
+@pytest.mark.slow
 def test_single_frame_denoising_beats_median_filters(niqa):
     import cv2
 
