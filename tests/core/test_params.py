@@ -64,3 +64,21 @@ def test_missing_and_malformed_files(tmp_path):
 def test_non_finite_and_huge_values_refused(data, message):
     with pytest.raises(ParameterError, match=message):
         params_from_dict(data)
+
+
+def test_batch_section_accepts_local_and_addresses_and_never_changes_the_run_identity(tmp_path):
+    from napari_dslrxr.core.pipeline import run_identity
+
+    for value in ("", "local", "tcp://10.0.0.5:8786", "tls://sched.example.org:8786", "node12:8786"):
+        assert params_from_dict({"batch": {"scheduler": value, "jobs": 4}}).batch.scheduler == value
+    with pytest.raises(ParameterError, match="batch.scheduler: expected"):
+        params_from_dict({"batch": {"scheduler": "my cluster"}})
+    with pytest.raises(ParameterError, match="batch.jobs"):
+        params_from_dict({"batch": {"jobs": 0}})
+    frame = tmp_path / "f.bin"
+    frame.write_bytes(b"frame")
+    plain = PipelineParams()
+    spread = params_from_dict({"batch": {"scheduler": "local", "jobs": 2}})
+    assert run_identity([frame], plain) == run_identity([frame], spread)  # same DICOM UIDs
+    changed = params_from_dict({"contrast": {"bone_contrast": 1.5}})
+    assert run_identity([frame], plain) != run_identity([frame], changed)

@@ -77,17 +77,36 @@ def register(app: typer.Typer) -> None:
         dicom: bool = typer.Option(False, "--dicom", help="Also write a DICOM DX file."),
         patient_name: str | None = typer.Option(None, "--patient-name", help="DICOM PatientName (only if given)."),
         patient_id: str | None = typer.Option(None, "--patient-id", help="DICOM PatientID (only if given)."),
-        jobs: int = typer.Option(1, "--jobs", "-j", min=1, max=64, help="Files processed in parallel (processes)."),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Redo files whose outputs exist."),
+        jobs: int | None = typer.Option(None, "--jobs", "-j", min=1, max=64,
+                                        help="Files processed in parallel on this machine: processes, or the "
+                                             "LocalCluster's workers with --scheduler local (default [batch] jobs)."),
+        scheduler: str | None = typer.Option(None, "--scheduler", help=(
+            "Run the batch on dask.distributed: 'local' (a LocalCluster of --jobs processes) or a scheduler "
+            "address such as tcp://host:8786 (default [batch] scheduler; none: process pool).")),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Redo files even when their outputs are finished."),
     ) -> int:
-        """Run the whole pipeline on each input; write TIFF, PNG (and DICOM) with JSON sidecars."""
-        from ..core.params import PipelineParams, load_params, params_to_dict
-        from ..core.pipeline import output_paths
-        from ..core.io.provenance import sidecar_path
+        """Run the whole pipeline on each input; write TIFF, PNG (and DICOM) with JSON sidecars.
+
+        A file is skipped only when its finished outputs' sidecars record the same input
+        checksums, parameters and version; otherwise it is processed again.
+        """
+        from ..core.params import PipelineParams, load_params, params_to_dict, validate_params
+        from ..core.pipeline import prepare_batch_references
+        from ..core.rerun import check_finished
 
         params = load_params(config) if config is not None else PipelineParams()
         if dicom:
             params.output.dicom = True
+        if scheduler is not None:
+            params.batch.scheduler = scheduler
+        if jobs is not None:
+            params.batch.jobs = jobs
+        params = validate_params(params)  # an option's value gets the parameter file's checks
+        scheduler, jobs = params.batch.scheduler, params.batch.jobs
+        if scheduler:
+            from .cluster import import_distributed
+
+            import_distributed()  # says how to install it before any work is done
         if psf is not None and (source_to_object_mm is None or source_to_detector_mm is None):
             raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
         for ref in [*flat, *dark, *([psf] if psf else [])]:
@@ -96,22 +115,35 @@ def register(app: typer.Typer) -> None:
         files = _expand_inputs(inputs)
         if not files:
             raise ParameterError("no input files found")
+        if scheduler not in ("", "local"):
+            # workers elsewhere do not share this working folder: give them absolute names
+            files, flat, dark = [f.absolute() for f in files], [p.absolute() for p in flat], [p.absolute() for p in dark]
+            psf, out = (psf.absolute() if psf else None), out.absolute()
         out.mkdir(parents=True, exist_ok=True)
         patient = {k: v for k, v in (("PatientName", patient_name), ("PatientID", patient_id)) if v}
-        todo, skipped = [], 0
+        todo, skipped, redo = [], 0, {}
+        checksums: dict = {}  # reference files are hashed once for the whole batch
         for f in files:
-            expected = output_paths(f, out, params)
-            # Finished means every image AND its sidecar: a kill between the two must be redone.
-            if not overwrite and expected and all(p.exists() and sidecar_path(p).exists()
-                                                  for p in expected.values()):
-                skipped += 1
-                continue
+            if not overwrite:
+                check = check_finished(f, out, params, flat_paths=flat, dark_paths=dark, psf_path=psf,
+                                       source_to_object_mm=source_to_object_mm,
+                                       source_to_detector_mm=source_to_detector_mm, patient=patient,
+                                       checksums=checksums)
+                if check.done:
+                    skipped += 1
+                    continue
+                if not check.new:
+                    redo.setdefault(check.reason, []).append(f.name)
             todo.append({"input": str(f), "out_dir": str(out), "params": params_to_dict(params),
                          "flats": [str(p) for p in flat], "darks": [str(p) for p in dark],
                          "psf": str(psf) if psf else None, "sod": source_to_object_mm,
                          "sdd": source_to_detector_mm, "patient": patient})
         if skipped:
-            print(f"dslrxr: skipped {skipped} file(s) with finished outputs (use --overwrite to redo)", file=sys.stderr)
+            print(f"dslrxr: skipped {skipped} file(s): their finished outputs match the inputs, parameters "
+                  "and version (use --overwrite to redo)", file=sys.stderr)
+        for reason, names in redo.items():
+            shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+            print(f"dslrxr: redoing {shown}: {reason}", file=sys.stderr)
         failed = 0
         total = len(todo)
 
@@ -126,14 +158,23 @@ def register(app: typer.Typer) -> None:
                 text = text if text.startswith(name) else f"{name}: {text}"
                 print(f"[{i}/{total}] dslrxr: error: {text}", file=sys.stderr)
 
-        if jobs > 1 and total > 1:
+        if scheduler and total:
+            from .cluster import run_on_cluster
+
+            references = prepare_batch_references(files, params=params, flat_paths=[str(p) for p in flat],
+                                                  dark_paths=[str(p) for p in dark],
+                                                  psf_path=str(psf) if psf else None,
+                                                  source_to_object_mm=source_to_object_mm,
+                                                  source_to_detector_mm=source_to_detector_mm)
+            run_on_cluster(todo, references, scheduler=scheduler, n_workers=jobs, report=report)
+        elif jobs > 1 and total > 1:
             with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool:
                 for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
                     report(i, outcome)
         else:
-            references: dict = {}  # flats and darks are read and prepared once for the batch
+            cache: dict = {}  # flats and darks are read and prepared once for the batch
             for i, job in enumerate(todo, start=1):
-                report(i, _process_one(job, references))
+                report(i, _process_one(job, cache))
         if failed:
             print(f"dslrxr: {failed} of {total} file(s) failed", file=sys.stderr)
             raise typer.Exit(1)

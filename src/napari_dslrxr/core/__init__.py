@@ -4,6 +4,7 @@ Nothing in this package imports Qt or napari; every stage is usable from scripts
 
 Where things are (data flows down this list; nothing imports a module above it):
 
+* :mod:`.rerun` - whether a file's finished outputs match a rerun (``dslrxr run`` skips or redoes it);
 * :mod:`.pipeline` - the whole pipeline over a frame or a file (``dslrxr run``);
 * :mod:`.params` - the pipeline parameters, one dataclass per TOML section, and the TOML file;
 * :mod:`.stages` - the pipeline stages: impulse removal, flat field, region (screen, collimation,
@@ -40,10 +41,11 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "make_dslr_radiograph", "parse_scene", "simulate_recording"),
     "diagnosis": ("DiagnosisOptions", "DiagnosisResult", "diagnose", "diagnose_scene", "write_report"),
     "metrics": ("global_contrast_factor", "percentage_error"),
-    "params": ("DeblurParams", "OutputParams", "PipelineParams", "default_params_toml", "load_params",
+    "params": ("BatchParams", "DeblurParams", "OutputParams", "PipelineParams", "default_params_toml", "load_params",
         "params_from_dict", "params_to_dict", "params_to_toml", "save_params", "validate_params"),
     "pipeline": ("PIPELINE_STAGES", "PipelineResult", "apply_display_stages", "enhance_radiograph",
-        "process_frame", "run_file", "run_pipeline", "scale_display_radiograph"),
+        "prepare_batch_references", "process_frame", "run_file", "run_pipeline", "scale_display_radiograph"),
+    "rerun": ("RerunCheck", "check_finished"),
 }
 
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

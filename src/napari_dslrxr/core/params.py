@@ -14,6 +14,7 @@ import dataclasses
 import difflib
 import math
 import os
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -94,6 +95,41 @@ class OutputParams:
         "help": "pixel pitch at the screen; 0 = unknown (then not written to DICOM)", "unit": "mm", "min": 0.0, "max": 100.0})
 
 
+#: ``[batch] scheduler``: a dask.distributed scheduler address (``tcp://host:8786``, also
+#: ``tls://``, ``inproc://``..., or a bare ``host:port``).
+_SCHEDULER_ADDRESS = re.compile(r"^([a-z][a-z0-9+]*://\S+|[\w.\-]+:\d+)$")
+
+
+@dataclass
+class BatchParams:
+    """How ``dslrxr run`` spreads a batch over processes or machines (TOML section ``[batch]``).
+
+    It changes where files are processed, never the outputs' bytes: it is left out of the
+    run identity (DICOM UIDs) and of the check that decides whether a file is already done.
+
+    Attributes
+    ----------
+    scheduler : str
+        ``""``: a process pool on this machine (``jobs`` processes); ``"local"``: a dask
+        LocalCluster of ``jobs`` worker processes (one thread each), closed at the end; an
+        address such as ``"tcp://host:8786"``: an existing dask.distributed scheduler.
+    jobs : int
+        Files processed in parallel on this machine (process pool or LocalCluster workers).
+    """
+
+    scheduler: str = field(default="", metadata={
+        "help": "\"\" = process pool on this machine; \"local\" = dask LocalCluster of `jobs` workers; "
+                "or a dask scheduler address such as \"tcp://host:8786\""})
+    jobs: int = field(default=1, metadata={
+        "help": "files processed in parallel on this machine (processes or LocalCluster workers)",
+        "min": 1, "max": 64})
+
+    def __post_init__(self):
+        if self.scheduler not in ("", "local") and not _SCHEDULER_ADDRESS.match(self.scheduler):
+            raise ParameterError(f"batch.scheduler: expected \"\", \"local\" or an address such as "
+                                 f"\"tcp://host:8786\", got {self.scheduler!r}")
+
+
 @dataclass
 class PipelineParams:
     """Every parameter of the six-stage pipeline, one dataclass per stage."""
@@ -105,7 +141,11 @@ class PipelineParams:
     dynamic_range: DynamicRangeParams = field(default_factory=DynamicRangeParams)
     contrast: ContrastParams = field(default_factory=ContrastParams)
     output: OutputParams = field(default_factory=OutputParams)
+    batch: BatchParams = field(default_factory=BatchParams)
 
+
+#: Sections that choose how a batch runs, not what it computes (outputs do not depend on them).
+RUN_ONLY_SECTIONS = ("batch",)
 
 SECTION_HELP = {
     "impulse": "(i) impulse (pulse) removal on the colour image: switching median driven by a Poisson + pulse mixture",
@@ -115,6 +155,7 @@ SECTION_HELP = {
     "dynamic_range": "(v) dynamic-range / latitude reduction in the log domain and the display curve",
     "contrast": "(vi) multiscale contrast enhancement (MUSICA-style Laplacian pyramid)",
     "output": "files written by the run",
+    "batch": "how dslrxr run spreads a batch: process pool or dask.distributed cluster (never changes outputs)",
 }
 
 # Help for A's ImpulseParams fields (its dataclass carries docstrings, not field metadata).
@@ -240,10 +281,16 @@ def validate_params(params: PipelineParams) -> PipelineParams:
     return params_from_dict(params_to_dict(params))
 
 
-def params_to_dict(params: PipelineParams) -> dict:
-    """Nested plain dict of every parameter (TOML-ready)."""
+def params_to_dict(params: PipelineParams, *, run_sections: bool = True) -> dict:
+    """Nested plain dict of every parameter (TOML-ready).
+
+    ``run_sections=False`` leaves out :data:`RUN_ONLY_SECTIONS` (the parameters an output
+    depends on).
+    """
     out = {}
     for f in dataclasses.fields(params):
+        if not run_sections and f.name in RUN_ONLY_SECTIONS:
+            continue
         section = getattr(params, f.name)
         out[f.name] = {sf.name: getattr(section, sf.name) for sf in dataclasses.fields(section)}
     return out
@@ -283,12 +330,18 @@ def _field_comment(section: str, f: dataclasses.Field) -> str:
     return f"# {text}" + (f" ({'; '.join(bits)})" if bits else "")
 
 
-def params_to_toml(params: PipelineParams | None = None, *, comments: bool = True) -> str:
-    """The TOML text of ``params`` (default: the defaults), with a comment above every key."""
+def params_to_toml(params: PipelineParams | None = None, *, comments: bool = True,
+                   run_sections: bool = True) -> str:
+    """The TOML text of ``params`` (default: the defaults), with a comment above every key.
+
+    ``run_sections=False`` leaves out :data:`RUN_ONLY_SECTIONS`.
+    """
     params = params or PipelineParams()
     lines = ["# napari-dslrxr pipeline parameters (dslrxr run -c this_file.toml).",
              "# Missing keys take their defaults; unknown keys are an error.", ""]
     for f in dataclasses.fields(params):
+        if not run_sections and f.name in RUN_ONLY_SECTIONS:
+            continue
         section = getattr(params, f.name)
         if comments:
             lines.append(f"# {SECTION_HELP.get(f.name, f.name)}")

@@ -30,7 +30,7 @@ from .stages.contrast import enhance_contrast
 from .stages.dynamic_range import reduce_dynamic_range, sigmoid_lut
 from .errors import InputError, OutputError, ParameterError
 from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
-from .params import PipelineParams, params_to_toml, validate_params
+from .params import PipelineParams, params_to_dict, params_to_toml, validate_params
 from .stages.region import Region, detect_collimation, detect_screen, polygon_mask, rectify, voi_window
 
 #: Stage names, in the order their progress steps are yielded.
@@ -426,7 +426,8 @@ def run_identity(input_files: Sequence[str | os.PathLike], params: PipelineParam
     digest = hashlib.sha256()
     for path in input_files:
         digest.update(file_sha256(path).encode())
-    digest.update(params_to_toml(params, comments=False).encode())
+    # how the batch was spread (the [batch] section) never changes an output
+    digest.update(params_to_toml(params, comments=False, run_sections=False).encode())
     digest.update(extra.encode())
     return digest.hexdigest()
 
@@ -463,6 +464,8 @@ def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Seq
     sidecar_results = {**result.results, "voi_window": list(result.voi_window)}
     if run_options:
         sidecar_results["run_options"] = dict(run_options)
+    if params.batch.scheduler:  # where it ran; the [batch] section never changes the bytes
+        sidecar_results["batch"] = {"scheduler": params.batch.scheduler}
     description = json.dumps({"software": "napari-dslrxr", "version": __version__, "stage": "run",
                               "polarity": params.output.polarity}, sort_keys=True)
     spacing = pixel_spacing_mm or (params.output.pixel_spacing_mm or None)
@@ -480,7 +483,8 @@ def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Seq
                            series_description="napari-dslrxr processed radiograph", inputs=inputs)
         else:  # pragma: no cover
             raise OutputError(f"{path}: unknown output kind {kind!r}")
-        write_sidecar(path, stage="run", parameters=params, inputs=inputs, timings_s=result.timings_s,
+        write_sidecar(path, stage="run", parameters=params_to_dict(params, run_sections=False), inputs=inputs,
+                      timings_s=result.timings_s,
                       results=sidecar_results)
         written.append(path)
     return written
@@ -491,6 +495,69 @@ def load_frames(paths: Sequence[str | os.PathLike]) -> list[np.ndarray]:
     from .io import read_image
 
     return [read_image(p).data for p in paths]
+
+
+def input_black_level(input_path: str | os.PathLike, params: PipelineParams):
+    """The dark offset :func:`run_file` uses without dark frames (0 for camera raw, whose
+    decoded RGB has the black level subtracted already; else the parameter)."""
+    from .io import RAW_EXTENSIONS
+
+    return 0.0 if Path(input_path).suffix.lower() in RAW_EXTENSIONS else params.flatfield.black_level_counts
+
+
+def flat_reference_key(flat_paths: Sequence[str | os.PathLike], dark_paths: Sequence[str | os.PathLike],
+                       shape: tuple[int, ...], offset, params: PipelineParams) -> tuple:
+    """Key of a prepared :class:`FlatReference` in a ``reference_cache`` (see :func:`run_file`)."""
+    return (tuple(map(str, flat_paths)), tuple(map(str, dark_paths)), tuple(shape), repr(offset),
+            repr(params.flatfield))
+
+
+def psf_kernel_key(psf_path: str | os.PathLike, source_to_object_mm: float, source_to_detector_mm: float) -> tuple:
+    """Key of a PSF kernel in a ``reference_cache`` (see :func:`run_file`)."""
+    return ("psf", str(psf_path), float(source_to_object_mm), float(source_to_detector_mm))
+
+
+def prepare_batch_references(input_paths: Sequence[str | os.PathLike], *, params: PipelineParams,
+                             flat_paths: Sequence[str | os.PathLike] = (),
+                             dark_paths: Sequence[str | os.PathLike] = (),
+                             psf_path: str | os.PathLike | None = None,
+                             source_to_object_mm: float | None = None,
+                             source_to_detector_mm: float | None = None) -> dict:
+    """Flat references and the PSF kernel of a batch, prepared once, keyed as :func:`run_file`
+    looks them up in its ``reference_cache`` (a cluster run sends this dict to every worker).
+
+    The frame shape is the reference frames' own (a radiograph of another shape fails in
+    :func:`run_file` with its usual message); one reference is prepared per dark offset the
+    inputs need (:func:`input_black_level`). Without flats and darks nothing heavy is
+    prepared (the offset-only reference is trivial) and no flat entry is made.
+
+    Raises
+    ------
+    InputError
+        An unreadable reference frame, or flats and darks of different shapes.
+    """
+    params = validate_params(params)
+    cache: dict = {}
+    if psf_path is not None:
+        if source_to_object_mm is None or source_to_detector_mm is None:
+            raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
+        from .psf import load_psf
+
+        cache[psf_kernel_key(psf_path, source_to_object_mm, source_to_detector_mm)] = \
+            load_psf(psf_path).kernel(source_to_object_mm, source_to_detector_mm)
+    if not flat_paths and not dark_paths:
+        return cache
+    flats = load_frames(flat_paths)
+    darks = load_frames(dark_paths)
+    shape = (flats or darks)[0].shape
+    for name, frame_paths, frames in (("flat", flat_paths, flats), ("dark", dark_paths, darks)):
+        for p, f in zip(frame_paths, frames, strict=True):
+            if f.shape != shape:
+                raise InputError(p, f"{name} frame shape {f.shape} differs from the other reference frames' {shape}")
+    for offset in {repr(input_black_level(p, params)): input_black_level(p, params) for p in input_paths}.values():
+        cache[flat_reference_key(flat_paths, dark_paths, shape, offset, params)] = prepare_flat_reference(
+            shape, flats=flats, darks=darks, black_level=offset, params=params.flatfield)
+    return cache
 
 
 def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
@@ -520,9 +587,10 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     patient : dict, optional
         DICOM patient fields supplied by the user (``PatientName``, ``PatientID``...).
     reference_cache : dict, optional
-        References prepared by earlier calls, keyed by reference files, frame shape, offset
-        and flat-field parameters; a batch passes one dict so its flats and darks are read
-        and prepared once, not once per file.
+        References prepared by earlier calls (or by :func:`prepare_batch_references`): flat
+        references keyed by :func:`flat_reference_key`, PSF kernels by
+        :func:`psf_kernel_key`; a batch passes one dict so its flats, darks and PSF model are
+        read and prepared once, not once per file.
 
     Returns
     -------
@@ -553,12 +621,16 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     if psf_path is not None:
         if source_to_object_mm is None or source_to_detector_mm is None:
             raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
-        from .psf import load_psf
+        kernel_key = psf_kernel_key(psf_path, source_to_object_mm, source_to_detector_mm)
+        kernel = reference_cache.get(kernel_key) if reference_cache is not None else None
+        if kernel is None:
+            from .psf import load_psf
 
-        kernel = load_psf(psf_path).kernel(source_to_object_mm, source_to_detector_mm)
+            kernel = load_psf(psf_path).kernel(source_to_object_mm, source_to_detector_mm)
+            if reference_cache is not None:
+                reference_cache[kernel_key] = kernel
     offset = black if black is not None else params.flatfield.black_level_counts
-    cache_key = (tuple(map(str, flat_paths)), tuple(map(str, dark_paths)), image.shape,
-                 repr(offset), repr(params.flatfield))
+    cache_key = flat_reference_key(flat_paths, dark_paths, image.shape, offset, params)
     if reference is None and reference_cache is not None:
         reference = reference_cache.get(cache_key)
     if reference is None:
@@ -587,6 +659,8 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     if psf_path is not None:
         run_options = {"source_to_object_mm": float(source_to_object_mm),
                        "source_to_detector_mm": float(source_to_detector_mm)}
+    # which of the checksummed inputs are flats and darks (a rerun compares them by role)
+    result.results["reference_frames"] = {"flat": len(flat_paths), "dark": len(dark_paths)}
     return write_outputs(result, paths, inputs=inputs, params=params, pixel_spacing_mm=spacing,
                          patient=patient, uid_seed=run_identity(inputs, params, extra),
                          run_options=run_options)

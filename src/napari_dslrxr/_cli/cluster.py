@@ -1,0 +1,186 @@
+"""``dslrxr run --scheduler``: the batch as one dask.distributed task per input file.
+
+The per-file work is :func:`napari_dslrxr.core.pipeline.run_file`, exactly as with ``--jobs``
+(same atomic writes and sidecars, so the outputs have the same bytes). The flat/dark reference
+and the PSF kernel are prepared once here and scattered to every worker, which looks them up
+in its ``reference_cache`` instead of reading the reference files again.
+
+dask reschedules the task of a worker that dies (a file is written under a temporary name and
+renamed, so a killed worker leaves no partial output); a task that kills
+``distributed.scheduler.allowed-failures`` + 1 workers fails alone. A lost connection to the
+scheduler ends the command with :class:`ClusterError` after the files already finished.
+
+dask is optional (``pip install 'napari-dslrxr[distributed]'``) and imported only here. The
+client, the LocalCluster and their threads live in the command line, never in the core.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import resource
+import sys
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from ..core.errors import DslrxrError, ParameterError
+
+#: Seconds to wait for an address given with ``--scheduler`` to answer.
+CONNECT_TIMEOUT_S = 20
+
+#: The references scattered to this worker process, plus any that ``run_file`` prepared here
+#: for an input the batch did not foresee (a worker keeps them for its later files).
+_worker_references: dict = {}
+
+
+class ClusterError(DslrxrError):
+    """The dask scheduler cannot be reached, or the connection to it was lost."""
+
+
+def import_distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise ParameterError("--scheduler needs dask.distributed, which is not installed: "
+                             "pip install 'napari-dslrxr[distributed]'") from None
+    return distributed
+
+
+def _run_on_worker(job: dict, references: dict | None) -> tuple[str, bool, str, float]:
+    """The task of one file: :func:`_process_one` with the scattered references."""
+    from .pipeline import _process_one
+
+    for key, value in (references or {}).items():
+        _worker_references.setdefault(key, value)
+    return _process_one(job, _worker_references)
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this (worker) process, MiB (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@contextlib.contextmanager
+def connect(scheduler: str, n_workers: int) -> Iterator:
+    """A dask ``Client``: on a LocalCluster of ``n_workers`` processes (``"local"``), closed
+    at the end, or on the scheduler at the address ``scheduler``."""
+    distributed = import_distributed()
+    if scheduler == "local":
+        cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                           dashboard_address=":0", silence_logs=logging.ERROR)
+        try:
+            with distributed.Client(cluster, set_as_default=False) as client:
+                yield client
+        finally:
+            cluster.close()
+        return
+    if not os.environ.get("DSLRXR_DEBUG"):  # a lost scheduler gets one line from us, not its tracebacks
+        for name in ("distributed", *(n for n in logging.root.manager.loggerDict if n.startswith("distributed."))):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+    try:
+        client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise ClusterError(f"cannot reach the dask scheduler at {scheduler} ({_short(exc)})") from None
+    try:
+        yield client
+    finally:
+        with contextlib.suppress(Exception):
+            client.close(timeout=5)
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) < 200 else text[:197] + "..."
+
+
+def _dashboard(client) -> str | None:
+    """The scheduler's dashboard link, when it serves one (without bokeh it only says to install it)."""
+    import urllib.request
+
+    try:
+        if "dashboard" not in client.scheduler_info().get("services", {}):
+            return None
+        link = client.dashboard_link
+        with urllib.request.urlopen(link, timeout=3) as page:
+            text = page.read(4096).decode("utf-8", "replace")
+    except Exception:
+        return None
+    return None if "needs bokeh" in text else link
+
+
+def _failed_task_message(exc: BaseException) -> str:
+    if type(exc).__name__ == "KilledWorker":
+        return "a dask worker died each time it processed this file (out of memory?)"
+    if isinstance(exc, OSError):  # the worker's file system refused (disk full, permissions...)
+        return f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or _short(exc)}"
+    return f"internal error on a worker ({type(exc).__name__}: {_short(exc)})"
+
+
+def run_on_cluster(todo: list[dict], references: dict, *, scheduler: str, n_workers: int,
+                   report: Callable[[int, tuple[str, bool, str, float]], None]) -> None:
+    """Run each job of ``todo`` as one task; call ``report(i, outcome)`` as files finish.
+
+    Raises
+    ------
+    ParameterError
+        dask.distributed is not installed.
+    ClusterError
+        The scheduler cannot be reached, or the connection was lost (files that finished
+        before are complete; a rerun does the rest).
+    """
+    distributed = import_distributed()
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    where = "a local dask cluster" if scheduler == "local" else f"the dask scheduler at {scheduler}"
+    finished = 0
+    with connect(scheduler, n_workers) as client:
+        n = len(client.scheduler_info().get("workers", {}))
+        print(f"dslrxr: {len(todo)} file(s) on {where} ({n} worker(s) now)", file=sys.stderr)
+        link = _dashboard(client)
+        print(f"dslrxr: dask dashboard: {link}" if link else
+              "dslrxr: no dask dashboard (install bokeh>=3.1 for one)", file=sys.stderr)
+        try:
+            # prepared once, held by every worker (a worker that joins later fetches it from a peer)
+            [shared] = client.scatter([references], broadcast=True, hash=False)
+            run_id = uuid.uuid4().hex[:8]
+            futures = [client.submit(_run_on_worker, job, shared, pure=False,
+                                     key=f"dslrxr-run-{run_id}-{i}-{Path(job['input']).name}")
+                       for i, job in enumerate(todo)]
+            by_key = {f.key: job for f, job in zip(futures, todo, strict=True)}
+            console = Console(stderr=True, highlight=False)
+            columns = (TextColumn("files"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+            # a bar on a terminal; logs and pipes get the per-file lines only
+            with Progress(*columns, console=console, transient=True, disable=not console.is_terminal) as bar:
+                task = bar.add_task("files", total=len(todo))
+                for future in distributed.as_completed(futures, loop=client.loop):
+                    if future.status == "error":  # the task raised on the worker: this file only
+                        outcome = (by_key[future.key]["input"], False, _failed_task_message(future.exception()), 0.0)
+                    elif future.status == "finished":
+                        try:
+                            outcome = future.result()
+                        except (OSError, TimeoutError, distributed.client.FutureCancelledError) as exc:
+                            raise ClusterError(f"lost the connection to {where} ({_short(exc)})") from None
+                    else:  # cancelled or lost: the client is no longer connected to the scheduler
+                        raise ClusterError(f"lost the connection to {where}")
+                    finished += 1
+                    report(finished, outcome)
+                    bar.advance(task)
+                    future.release()
+            with contextlib.suppress(Exception):
+                peaks = sorted(client.run(_peak_rss_mb, wait=True).values())
+                print("dslrxr: peak memory per worker: " + ", ".join(f"{p:.0f}" for p in peaks) + " MiB",
+                      file=sys.stderr)
+        except ClusterError as exc:
+            raise ClusterError(f"{exc}: {_after_loss(finished, len(todo))}") from None
+        except (OSError, TimeoutError) as exc:  # comm errors while scattering or submitting
+            raise ClusterError(f"lost the connection to {where} ({_short(exc)}): "
+                               f"{_after_loss(finished, len(todo))}") from None
+
+
+def _after_loss(finished: int, total: int) -> str:
+    return (f"{finished} of {total} file(s) reported finished (files being processed then are either complete "
+            "or absent, never partial); run the same command again to do the rest")
+

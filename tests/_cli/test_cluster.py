@@ -1,0 +1,264 @@
+"""``dslrxr run --scheduler``: a batch on dask.distributed, run as a user would.
+
+Each test starts real worker processes (one thread each) and runs the ``dslrxr`` process
+against them: a LocalCluster started by the command itself, and an external scheduler and
+worker (``python -m distributed.cli.dask_scheduler`` / ``dask_worker``) whose worker or
+scheduler the test kills in the middle of a batch. Outputs are compared byte for byte with
+``--jobs 1`` (the process-pool-free reference).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from napari_dslrxr.cli import main
+from napari_dslrxr.core.io import file_sha256, write_tiff
+from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
+
+pytest.importorskip("distributed", reason="dask.distributed is an optional extra")
+
+RUN_TIMEOUT_S = 180
+
+
+def _dslrxr(*args: str, timeout: float = RUN_TIMEOUT_S) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *args], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def _write_batch(folder: Path, shape: tuple[int, int], n: int) -> tuple[list[Path], Path, Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    shots = []
+    for seed in range(n):
+        frames = make_dslr_radiograph(shape, seed=seed)
+        shots.append(write_tiff(folder / f"shot{seed}.tif", frames.raw_rgb))
+    return shots, write_tiff(folder / "flat.tif", frames.flat), write_tiff(folder / "dark.tif", frames.dark)
+
+
+@pytest.fixture(scope="module")
+def small_batch(tmp_path_factory):
+    """Four small frames, their flat and dark, and a broken file."""
+    folder = tmp_path_factory.mktemp("small")
+    shots, flat, dark = _write_batch(folder, (160, 240), 4)
+    bad = folder / "broken.tif"
+    bad.write_bytes(b"II*\x00" + b"\x00" * 20)
+    return {"shots": shots, "flat": flat, "dark": dark, "bad": bad}
+
+
+@pytest.fixture(scope="module")
+def slow_batch(tmp_path_factory):
+    """Frames that take about a second each, so a worker can be killed in the middle of one."""
+    folder = tmp_path_factory.mktemp("slow")
+    shots, flat, dark = _write_batch(folder, (600, 900), 3)
+    reference = folder / "jobs1"  # what --jobs 1 writes, to compare with
+    assert main(["run", *map(str, shots), "--flat", str(flat), "--dark", str(dark), "-o", str(reference)]) == 0
+    return {"shots": shots, "flat": flat, "dark": dark, "reference": _images(reference)}
+
+
+def _images(out: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.suffix in (".tif", ".png", ".dcm")}
+
+
+def _sidecars_without_timings(out: Path) -> dict[str, dict]:
+    found = {}
+    for p in sorted(out.glob("*.json")):
+        side = json.loads(p.read_text())
+        side.pop("timings_s")
+        side["results"].pop("batch", None)
+        found[p.name] = side
+    return found
+
+
+def _assert_nothing_partial(out: Path) -> None:
+    """Every file under a final name is complete: an image's sidecar (when written) matches it."""
+    for path in sorted(out.iterdir()):
+        if path.name.startswith(".") or path.suffix == ".json":
+            continue
+        side = path.with_name(path.name + ".json")
+        if side.exists():
+            assert json.loads(side.read_text())["output"]["sha256"] == file_sha256(path), path.name
+
+
+@contextlib.contextmanager
+def _external_cluster(folder: Path, n_workers: int):
+    """A scheduler and ``n_workers`` single-thread worker processes, as on a cluster; yields
+    (address, scheduler process, client seen by the test)."""
+    from distributed import Client
+
+    scheduler_file = folder / "scheduler.json"
+    log = open(folder / "cluster.log", "w")  # noqa: SIM115 - closed below
+    common = ["--no-dashboard"]
+    scheduler = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                  "--port", "0", "--scheduler-file", str(scheduler_file), *common],
+                                 stdout=log, stderr=log, start_new_session=True)
+    workers = None
+    client = None
+    try:
+        deadline = time.monotonic() + 60
+        while not scheduler_file.exists():
+            assert time.monotonic() < deadline and scheduler.poll() is None, "the dask scheduler did not start"
+            time.sleep(0.1)
+        workers = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", "--scheduler-file",
+                                    str(scheduler_file), "--nworkers", str(n_workers), "--nthreads", "1", *common],
+                                   stdout=log, stderr=log, start_new_session=True)
+        client = Client(scheduler_file=str(scheduler_file), timeout=60, set_as_default=False)
+        client.wait_for_workers(n_workers, timeout=90)
+        yield client.scheduler.address, scheduler, client
+    finally:
+        if client is not None:
+            with contextlib.suppress(Exception):
+                client.close(timeout=5)
+        for proc in (workers, scheduler):
+            if proc is not None and proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)  # the group: a worker's nanny and its worker process
+                try:
+                    proc.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    proc.wait()
+        log.close()
+
+
+def test_local_cluster_from_the_parameter_file_matches_jobs_1_and_a_bad_file_fails_alone(tmp_path, small_batch):
+    shots, refs = small_batch["shots"], ["--flat", str(small_batch["flat"]), "--dark", str(small_batch["dark"]), "--dicom"]
+    cfg = tmp_path / "p.toml"
+    cfg.write_text('[batch]\nscheduler = "local"\njobs = 2\n')
+    run = _dslrxr("run", *map(str, shots[:2]), str(small_batch["bad"]), *map(str, shots[2:]), *refs,
+                  "-o", str(tmp_path / "cluster"), "-c", str(cfg))
+    assert run.returncode == 1, run.stderr
+    assert "on a local dask cluster (2 worker(s)" in run.stderr
+    assert "broken.tif" in run.stderr and "1 of 5 file(s) failed" in run.stderr
+    assert "peak memory per worker" in run.stderr and "Traceback" not in run.stderr
+    assert main(["run", *map(str, shots), *refs, "-o", str(tmp_path / "jobs1"), "--jobs", "1"]) == 0
+    cluster, reference = _images(tmp_path / "cluster"), _images(tmp_path / "jobs1")
+    assert len(reference) == 3 * len(shots) and cluster == reference  # TIFF, PNG and DICOM, same bytes
+    assert not (tmp_path / "cluster" / "broken_dslrxr.tif").exists()
+    # sidecars differ only in timings and where the batch ran
+    assert _sidecars_without_timings(tmp_path / "cluster") == _sidecars_without_timings(tmp_path / "jobs1")
+    side = json.loads((tmp_path / "cluster" / "shot0_dslrxr.tif.json").read_text())
+    assert side["results"]["batch"] == {"scheduler": "local"} and "batch" not in side["parameters"]
+
+
+def test_references_are_prepared_once_and_scattered(tmp_path, small_batch, monkeypatch):
+    """Workers take the flat reference and the PSF kernel from the scattered data: the flats,
+    darks and PSF model are read once for the batch, not once per worker or file."""
+    from distributed import LocalCluster
+
+    from napari_dslrxr._cli import cluster as cli_cluster
+    from napari_dslrxr.core import pipeline as core_pipeline
+    from napari_dslrxr.core import psf as core_psf
+    from napari_dslrxr.core.psf import PSFModel, save_psf
+
+    psf = save_psf(PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.3, source_fwhm_y_mm=0.3,
+                            detector_fwhm_core_mm=0.15, detector_fwhm_tail_mm=0.4,
+                            detector_weight_core=0.8, shape_power=1.5), tmp_path / "psf.json")
+    frame_reads, psf_reads = [], []
+    real_load_frames, real_load_psf = core_pipeline.load_frames, core_psf.load_psf
+    monkeypatch.setattr(core_pipeline, "load_frames", lambda paths: frame_reads.append(list(paths)) or real_load_frames(paths))
+    monkeypatch.setattr(core_psf, "load_psf", lambda path: psf_reads.append(path) or real_load_psf(path))
+    monkeypatch.setattr(cli_cluster, "_worker_references", {})
+    shots = small_batch["shots"]
+    common = [*map(str, shots), "--flat", str(small_batch["flat"]), "--dark", str(small_batch["dark"]), "--psf",
+              str(psf), "--source-to-object-mm", "500", "--source-to-detector-mm", "1000"]
+    # workers as threads of this process, so the counters see their reads too
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        assert main(["run", *common, "-o", str(tmp_path / "cluster"), "--scheduler", cluster.scheduler_address]) == 0
+    assert frame_reads == [[str(small_batch["flat"])], [str(small_batch["dark"])]]
+    assert len(psf_reads) == 1
+    kinds = sorted(str(key[0]) for key in cli_cluster._worker_references)
+    assert len(kinds) == 2 and "psf" in kinds  # one flat reference, one kernel
+    assert main(["run", *common, "-o", str(tmp_path / "jobs1")]) == 0
+    assert _images(tmp_path / "cluster") == _images(tmp_path / "jobs1")
+
+
+def test_a_killed_worker_loses_nothing(tmp_path, slow_batch):
+    shots, refs = slow_batch["shots"], ["--flat", str(slow_batch["flat"]), "--dark", str(slow_batch["dark"])]
+    out = tmp_path / "out"
+    with _external_cluster(tmp_path, 2) as (address, _, client):
+        run = subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", "run", *map(str, shots), *refs,
+                                "-o", str(out), "--scheduler", address],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 90
+        busy = []
+        while not busy:
+            assert time.monotonic() < deadline and run.poll() is None, "no task started"
+            busy = [(w, k) for w, keys in client.processing().items() for k in keys if "dslrxr-run" in str(k)]
+            time.sleep(0.05)
+        worker, key = busy[0]
+        name = str(key).rsplit("-", 1)[1]  # the key ends with the input's file name
+        pid = client.run(os.getpid, workers=[worker])[worker]
+        time.sleep(0.3)  # into the file's pipeline
+        assert not (out / (Path(name).stem + "_dslrxr.png.json")).exists()  # its outputs are not finished
+        os.kill(pid, signal.SIGKILL)
+        _, stderr = run.communicate(timeout=RUN_TIMEOUT_S)
+        story = client.run_on_scheduler(lambda dask_scheduler: [t[2] for t in dask_scheduler.story(key)])
+    assert run.returncode == 0, stderr
+    assert story.count("processing") >= 2  # the killed worker's file was scheduled again
+    leftovers = [p.name for p in out.iterdir() if p.name.startswith(".")]
+    assert not leftovers, leftovers  # a worker killed mid-write leaves no temporary file behind
+    _assert_nothing_partial(out)
+    assert _images(out) == slow_batch["reference"]
+
+
+def test_a_lost_scheduler_ends_the_run_with_a_clear_message(tmp_path, slow_batch):
+    shots, refs = slow_batch["shots"], ["--flat", str(slow_batch["flat"]), "--dark", str(slow_batch["dark"])]
+    out = tmp_path / "out"
+    with _external_cluster(tmp_path, 1) as (address, scheduler, _):
+        run = subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", "run", *map(str, shots), *refs,
+                                "-o", str(out), "--scheduler", address],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 90
+        while not (out.exists() and list(out.glob("*.png.json"))):
+            assert time.monotonic() < deadline and run.poll() is None, "no file finished"
+            time.sleep(0.05)
+        os.killpg(scheduler.pid, signal.SIGKILL)
+        _, stderr = run.communicate(timeout=RUN_TIMEOUT_S)
+    assert run.returncode == 2, stderr
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("dslrxr: error: lost the connection to the dask scheduler at " + address)
+    assert "run the same command again" in last and "Traceback" not in stderr
+    _assert_nothing_partial(out)
+    finished = {p.name for p in out.glob("*_dslrxr.png.json")}
+    assert 1 <= len(finished) < len(shots)
+    # the rerun (here without a cluster) does the rest and keeps what was finished
+    rerun = _dslrxr("run", *map(str, shots), *refs, "-o", str(out))
+    assert rerun.returncode == 0 and f"skipped {len(finished)} file(s)" in rerun.stderr
+    assert _images(out) == slow_batch["reference"]
+
+
+def test_without_dask_the_scheduler_option_says_how_to_install_it(tmp_path, small_batch):
+    code = ("import sys; sys.modules['distributed'] = None\n"  # as if the extra were not installed
+            "from napari_dslrxr.cli import main\n"
+            f"sys.exit(main(['run', {str(small_batch['shots'][0])!r}, '-o', {str(tmp_path / 'o')!r},"
+            " '--scheduler', 'local']))\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2
+    assert run.stderr.strip() == ("dslrxr: error: --scheduler needs dask.distributed, which is not installed: "
+                                  "pip install 'napari-dslrxr[distributed]'")
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_or_unreachable_scheduler_is_one_line(tmp_path, small_batch, capsys, monkeypatch):
+    from napari_dslrxr._cli import cluster as cli_cluster
+
+    shot = str(small_batch["shots"][0])
+    assert main(["run", shot, "-o", str(tmp_path / "o"), "--scheduler", "my-cluster"]) == 2
+    assert "batch.scheduler: expected" in capsys.readouterr().err
+    monkeypatch.setattr(cli_cluster, "CONNECT_TIMEOUT_S", 2)
+    with __import__("socket").socket() as sock:  # a port nobody listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    assert main(["run", shot, "-o", str(tmp_path / "o"), "--scheduler", f"tcp://127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"dslrxr: error: cannot reach the dask scheduler at tcp://127.0.0.1:{port}")
+    assert err.count("\n") == 0
+    assert not list((tmp_path / "o").glob("*_dslrxr*"))
+
