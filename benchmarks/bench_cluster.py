@@ -35,7 +35,7 @@ from _harness import record  # noqa: E402
 
 def _write_frames(folder: Path, n: int, shape: tuple[int, int]) -> tuple[list[Path], Path, Path]:
     from napari_dslrxr.core.io import write_tiff
-    from napari_dslrxr.core.phantom import make_dslr_radiograph
+    from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 
     frames = make_dslr_radiograph(shape, seed=0)
     shots = [write_tiff(folder / f"frame_{i:02d}.tif", np.roll(frames.raw_rgb, 8 * i, axis=1)) for i in range(n)]
