@@ -127,6 +127,7 @@ def _external_cluster(folder: Path, n_workers: int):
         log.close()
 
 
+@pytest.mark.slow
 def test_local_cluster_from_the_parameter_file_matches_jobs_1_and_a_bad_file_fails_alone(tmp_path, small_batch):
     shots, refs = small_batch["shots"], ["--flat", str(small_batch["flat"]), "--dark", str(small_batch["dark"]), "--dicom"]
     cfg = tmp_path / "p.toml"
@@ -179,6 +180,7 @@ def test_references_are_prepared_once_and_scattered(tmp_path, small_batch, monke
     assert _images(tmp_path / "cluster") == _images(tmp_path / "jobs1")
 
 
+@pytest.mark.slow
 def test_a_killed_worker_loses_nothing(tmp_path, slow_batch):
     shots, refs = slow_batch["shots"], ["--flat", str(slow_batch["flat"]), "--dark", str(slow_batch["dark"])]
     out = tmp_path / "out"
@@ -208,6 +210,7 @@ def test_a_killed_worker_loses_nothing(tmp_path, slow_batch):
     assert _images(out) == slow_batch["reference"]
 
 
+@pytest.mark.slow
 def test_a_lost_scheduler_ends_the_run_with_a_clear_message(tmp_path, slow_batch):
     shots, refs = slow_batch["shots"], ["--flat", str(slow_batch["flat"]), "--dark", str(slow_batch["dark"])]
     out = tmp_path / "out"

@@ -29,6 +29,7 @@ def _dslrxr(*args) -> subprocess.CompletedProcess:
                           text=True, timeout=180)
 
 
+@pytest.mark.slow
 def test_changing_bone_contrast_in_the_parameter_file_redoes_the_file(tmp_path, frames):
     out, cfg = tmp_path / "out", tmp_path / "p.toml"
     refs = ["--flat", frames["flat"], "--dark", frames["dark"]]
