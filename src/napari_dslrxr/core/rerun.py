@@ -137,7 +137,7 @@ def check_finished(input_path: str | os.PathLike, out_dir: str | os.PathLike, pa
         if change:
             return RerunCheck(False, change)
         frames = results.get("reference_frames")
-        if not isinstance(frames, dict) or not {"flat", "dark"} <= frames.keys():
+        if not isinstance(frames, dict) or not all(isinstance(frames.get(k), int) for k in ("flat", "dark")):
             return RerunCheck(False, f"{path.name}.json does not say which inputs were flats and darks")
         recorded_roles = ["input frame"] + ["flat frame"] * frames["flat"] + ["dark frame"] * frames["dark"]
         recorded_roles += ["PSF model"] * (len(recorded_inputs) - len(recorded_roles))
@@ -147,13 +147,16 @@ def check_finished(input_path: str | os.PathLike, out_dir: str | os.PathLike, pa
             geometry = {"source_to_object_mm": float(source_to_object_mm), "source_to_detector_mm": float(source_to_detector_mm)}
             if results.get("run_options") != geometry:
                 return RerunCheck(False, "deblurring geometry changed")
-        for (role, wanted), recorded in zip(roles, recorded_inputs, strict=True):
-            if not wanted.is_file():
-                return RerunCheck(False, f"{role} {wanted} not found")  # run_file reports it
-            if recorded.get("bytes") != wanted.stat().st_size or recorded.get("sha256") != _sha(wanted, checksums):
-                return RerunCheck(False, f"{role} {wanted.name} changed (checksum)")
-        if _sha(path, None) != (side.get("output") or {}).get("sha256"):
-            return RerunCheck(False, f"{path.name} differs from the file its sidecar describes")
+        try:
+            for (role, wanted), recorded in zip(roles, recorded_inputs, strict=True):
+                if not wanted.is_file():
+                    return RerunCheck(False, f"{role} {wanted} not found")  # run_file reports it
+                if recorded.get("bytes") != wanted.stat().st_size or recorded.get("sha256") != _sha(wanted, checksums):
+                    return RerunCheck(False, f"{role} {wanted.name} changed (checksum)")
+            if _sha(path, None) != (side.get("output") or {}).get("sha256"):
+                return RerunCheck(False, f"{path.name} differs from the file its sidecar describes")
+        except OSError as exc:  # unreadable: processing it again reports the problem for this file
+            return RerunCheck(False, f"cannot checksum {exc.filename or path} ({exc.strerror or exc})")
         if kind == "dicom":
             change = _dicom_patient_change(path, patient)
             if change:
