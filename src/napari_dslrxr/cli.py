@@ -22,6 +22,7 @@ try:  # recent typer vendors click; older versions use the click package
 except ImportError:  # pragma: no cover
     from click.exceptions import ClickException
 
+from ._cli.common import HELP_MARKUP_MODE
 from .core.errors import DslrxrError
 
 EXIT_OK = 0
@@ -36,11 +37,23 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=HELP_MARKUP_MODE,
 )
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        typer.echo(f"dslrxr (napari-dslrxr) {__version__}")
+        raise typer.Exit(EXIT_OK)
+
+
 @app.callback()
-def _root() -> None:
+def _root(
+    version: bool = typer.Option(False, "--version", is_eager=True, callback=_print_version,
+                                 help="Print the package version and exit."),
+) -> None:
     """Digital radiography from a DSLR photographing an X-ray scintillator."""
 
 
@@ -69,9 +82,45 @@ def main(argv: list[str] | None = None) -> int:
         return _run(argv)
 
 
+#: Words a user may write after an on/off flag ("--dicom true"); click would take them as the
+#: next positional argument (an input file named "true").
+_BOOLEAN_WORDS = frozenset({"true", "false", "yes", "no", "on", "off", "1", "0", "y", "n", "t", "f"})
+
+
+def check_flag_values(command, argv: list[str]) -> None:
+    """Refuse a boolean word right after an on/off flag, unless a file of that name exists.
+
+    ``--dicom true`` is a flag followed by a positional argument to click; the user meant a
+    value. Raises :class:`ParameterError` naming the flag and its two spellings.
+    """
+    from pathlib import Path
+
+    from .core.errors import ParameterError
+
+    current = command
+    for i, token in enumerate(argv):
+        if token == "--":
+            return
+        subcommands = getattr(current, "commands", None)
+        if subcommands and token in subcommands:
+            current = subcommands[token]
+            continue
+        for param in getattr(current, "params", []):
+            if not getattr(param, "is_flag", False) or getattr(param, "count", False):
+                continue
+            if token not in (*param.opts, *param.secondary_opts) or i + 1 >= len(argv):
+                continue
+            value = argv[i + 1]
+            if value.lower() in _BOOLEAN_WORDS and not Path(value).exists():
+                spellings = " or ".join((*param.opts, *param.secondary_opts)[:2])
+                raise ParameterError(f"{token} is an on/off flag and takes no value (got {value!r}); "
+                                     f"write {spellings}")
+
+
 def _run(argv: list[str] | None) -> int:
     command = typer.main.get_command(app)
     try:
+        check_flag_values(command, list(sys.argv[1:] if argv is None else argv))
         result = command.main(args=argv, prog_name="dslrxr", standalone_mode=False)
     except typer.Exit as exc:
         return exc.exit_code

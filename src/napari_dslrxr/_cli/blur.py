@@ -26,10 +26,13 @@ from typing import Optional
 
 import typer
 
+from .common import HELP_MARKUP_MODE
+
 
 def register(app: typer.Typer) -> None:
     """Add the ``psf`` command group (``fit``, ``kernel``) to ``app``."""
     psf_app = typer.Typer(help="Blur (PSF) estimation from edge radiographs and kernel sampling.",
+                          rich_markup_mode=HELP_MARKUP_MODE,
                           no_args_is_help=True)
     app.add_typer(psf_app, name="psf")
 

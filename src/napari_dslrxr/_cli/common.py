@@ -6,6 +6,11 @@ from pathlib import Path
 
 from ..core.errors import ParameterError
 
+#: Help layout of every command and command group: plain (click) text, whose option names are
+#: never cut at any terminal width; the rich table layout truncates long option names
+#: ("--source-to-obj…") at 80 columns.
+HELP_MARKUP_MODE = None
+
 
 def parse_int_list(text: str, n: int, name: str) -> list[int]:
     """Parse ``"a,b,c"`` into ``n`` integers or raise a one-line :class:`ParameterError`."""

@@ -14,6 +14,8 @@ from typing import Optional
 
 import typer
 
+from .common import HELP_MARKUP_MODE
+
 SPACES = ("auto", "grey", "hsv", "cfa")
 
 
@@ -121,6 +123,7 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"{output}: space {results['space']}; pulse rate {rates}; gain {gains or 'n/a'}")
 
     metrics_app = typer.Typer(help="Image-quality metrics: percentage error and global contrast factor.",
+                              rich_markup_mode=HELP_MARKUP_MODE,
                               no_args_is_help=True)
 
     @metrics_app.command("pe")
@@ -142,7 +145,10 @@ def register(app: typer.Typer) -> None:
     def gcf_command(
         image: Path = typer.Argument(..., metavar="IMAGE", help="Display image (uint8, uint16 or float in [0, 1])."),
     ) -> None:
-        """Print the global contrast factor (Matkovic et al. 2005) of IMAGE."""
+        """Print the global contrast factor (GCF) of IMAGE.
+
+        GCF after Matkovic, Neumann, Neumann, Psik and Purgathofer (2005).
+        """
         from ..core.io import read_image
         from ..core.metrics import global_contrast_factor
 

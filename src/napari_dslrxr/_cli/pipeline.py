@@ -74,7 +74,9 @@ def register(app: typer.Typer) -> None:
         psf: Path | None = typer.Option(None, "--psf", help="PSF model JSON; turns on deblurring."),
         source_to_object_mm: float | None = typer.Option(None, "--source-to-object-mm", help="SOD for the PSF, mm."),
         source_to_detector_mm: float | None = typer.Option(None, "--source-to-detector-mm", help="SDD for the PSF, mm."),
-        dicom: bool = typer.Option(False, "--dicom", help="Also write a DICOM DX file."),
+        dicom: bool | None = typer.Option(
+            None, "--dicom/--no-dicom", show_default=False,
+            help="Write a DICOM DX file, or not (default: [output] dicom of the parameter file)."),
         patient_name: str | None = typer.Option(None, "--patient-name", help="DICOM PatientName (only if given)."),
         patient_id: str | None = typer.Option(None, "--patient-id", help="DICOM PatientID (only if given)."),
         jobs: int | None = typer.Option(None, "--jobs", "-j", min=1, max=64,
@@ -95,8 +97,8 @@ def register(app: typer.Typer) -> None:
         from ..core.rerun import check_finished
 
         params = load_params(config) if config is not None else PipelineParams()
-        if dicom:
-            params.output.dicom = True
+        if dicom is not None:
+            params.output.dicom = dicom
         if scheduler is not None:
             params.batch.scheduler = scheduler
         if jobs is not None:
