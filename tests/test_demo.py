@@ -50,3 +50,47 @@ def test_demo_fits_the_frame_blur_and_deblurs_with_it(tmp_path, capsys):
     assert side["results"]["run_options"] == {"source_to_object_mm": DEMO_SOURCE_TO_OBJECT_MM,
                                               "source_to_detector_mm": DEMO_SOURCE_TO_DETECTOR_MM}
     assert any(i["path"].endswith("psf.json") for i in side["inputs"])
+
+
+@pytest.mark.slow
+def test_every_command_runs_on_the_demo_outputs(tmp_path):
+    """The newcomer path: after the demo, each ``dslrxr`` command works on what it wrote."""
+    import os
+    import subprocess
+    import sys
+
+    assert main([str(tmp_path), "--small"]) == 0
+
+    def dslrxr(*args):
+        proc = subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *args], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=600,
+                              env={**os.environ, "COLUMNS": "80"})
+        assert proc.returncode == 0, (args, proc.stderr)
+        return proc.stdout
+
+    geometry = ["--source-to-object-mm", "1150", "--source-to-detector-mm", "1200"]
+    assert dslrxr("--version").startswith("dslrxr (napari-dslrxr) ")
+    dslrxr("params", "--check", "params.toml")
+    assert "[impulse]" in dslrxr("params", "--default")
+    dslrxr("denoise", "input/radiograph.tif", "-o", "clean.tif", "--mask-out", "pulses.tif")
+    assert read_image(tmp_path / "pulses.tif").data.max() == 255  # the demo frame has pulses
+    dslrxr("run", "input/radiograph.tif", "-o", "out", "-c", "params.toml", "--flat", "input/flat.tif",
+           "--dark", "input/dark.tif", "--psf", "psf.json", *geometry, "--no-dicom")
+    assert (tmp_path / "out/radiograph_dslrxr.tif").exists() and not (tmp_path / "out/radiograph_dslrxr.dcm").exists()
+    dslrxr("psf", "fit", "input/edges.toml", "-o", "psf_again.json")
+    again, first = (json.loads((tmp_path / name).read_text()) for name in ("psf_again.json", "psf.json"))
+    again.pop("fit_report"), first.pop("fit_report")  # holds paths and timings
+    assert again == first
+    dslrxr("psf", "kernel", "psf.json", *geometry, "-o", "kernel.tif")
+    dslrxr("deconvolve", "input/edge_1150mm_3deg.tif", "--kernel", "kernel.tif", "-o", "sharp_k.tif")
+    dslrxr("deconvolve", "input/edge_1150mm_3deg.tif", "--psf", "psf.json", *geometry, "-o", "sharp_p.tif")
+    assert np.array_equal(read_image(tmp_path / "sharp_k.tif").data, read_image(tmp_path / "sharp_p.tif").data)
+    dslrxr("simulate", "input/scene.toml", "-o", "recording.tif", "--effect", "veiling_glare=0.03", "--seed", "1")
+    text = dslrxr("diagnose", "input/scene.toml", "recording.tif", "-o", "report")
+    assert "veiling_glare" in text  # the effect the scene leaves out is named
+    html = (tmp_path / "report/report.html").read_text()
+    assert html.count('src="data:image/png;base64,') == 2  # the maps and profiles figures
+    assert float(dslrxr("metrics", "pe", "input/radiograph.tif", "input/radiograph.tif")) == 0
+    assert float(dslrxr("metrics", "pe", "input/radiograph.tif", "clean.tif", "--roi", "100,100,300,400")) > 0
+    assert float(dslrxr("metrics", "gcf", "radiograph_dslrxr.png")) > 0
+    assert "--cfa-planes" in dslrxr("view", "--help")

@@ -12,6 +12,8 @@ and writes into OUTDIR:
   pipeline deblurs the frame with it (stage iv);
 * ``radiograph_dslrxr.tif`` (16-bit), ``.png`` (preview), ``.dcm`` (DICOM DX), each with a
   ``.json`` sidecar (parameters, version, input checksums, stage timings);
+* ``input/scene.toml`` and ``input/scene_thickness.tif`` - a simulator scene (the analytic
+  phantom in aluminium, thickness in mm) for ``dslrxr simulate`` and ``dslrxr diagnose``;
 * ``params.toml`` - the parameters used (the default file);
 * ``before_after.png`` - the raw green channel (linear, stretched) beside the result.
 """
@@ -75,6 +77,28 @@ def write_edge_radiographs(folder: Path, blur_sigma_px: float, *, seed: int = 0)
     return config
 
 
+def write_scene(folder: Path) -> Path:
+    """Write the sample simulator scene (TOML + thickness TIFF) into ``folder``; return the TOML.
+
+    The same scene the napari sample offers: ``dslrxr simulate`` records it through the imaging
+    chain and ``dslrxr diagnose`` compares a recording with it.
+    """
+    import copy
+
+    import tomli_w
+
+    from ._sample_data import SCENE_SHAPE, SCENE_TABLE
+    from .core.io import write_tiff
+    from .core.simulation.simulator import phantom_thickness_mm
+
+    thickness = write_tiff(folder / "scene_thickness.tif", phantom_thickness_mm(SCENE_SHAPE))
+    table = copy.deepcopy(SCENE_TABLE)
+    table["object"]["thickness_mm"] = thickness.name
+    scene = folder / "scene.toml"
+    scene.write_text(tomli_w.dumps(table), encoding="utf-8")
+    return scene
+
+
 def main(argv: list[str] | None = None) -> int:
     """Generate the sample data, run the pipeline, write outputs; return an exit code."""
     from . import cli
@@ -101,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"generated a {shape[0]}x{shape[1]} DSLR-like frame with flat and dark in {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()
     config = write_edge_radiographs(inputs, frames.truth.blur_sigma_px, seed=0)
+    scene = write_scene(inputs)
     psf_path = out / "psf.json"
     if cli.main(["psf", "fit", str(config), "-o", str(psf_path)]) != 0:
         return 1
@@ -122,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"pipeline ran in {time.perf_counter() - t1:.1f} s")
     processed = read_image(out / "radiograph_dslrxr.tif").data.astype(np.float32) / 65535.0
     write_png(out / "before_after.png", before_after(frames.raw_rgb, processed, frames.black_level))
-    for path in [*written, psf_path, out / "before_after.png", out / "params.toml"]:
+    for path in [*written, psf_path, out / "before_after.png", out / "params.toml", scene]:
         print(f"  wrote {path}")
     return 0
 
