@@ -6,7 +6,8 @@
   over-filtering.
 * GCF: Matkovic, Neumann, Neumann, Psik & Purgathofer, "Global Contrast Factor - a New
   Approach to Image Contrast", Computational Aesthetics 2005, pp. 159-167. Computed on the
-  display-referred grey image at nine resolutions (notes: ``shared/notes/stages.md`` 7.1).
+  display-referred grey image at nine resolutions (``docs/algorithms/metrics.md``, section
+  'Global contrast factor').
 """
 
 from __future__ import annotations

@@ -1,11 +1,12 @@
 """Mismatch diagnosis: locate, name, model and refit what the base model leaves out.
 
-Algorithm (notes ``physics.md`` §6–§7), on a single-channel linear recording:
+Algorithm (``docs/algorithms/diagnosis.md``), on a single-channel linear recording:
 
 1. **Base fit.** Offset, gain, effective attenuation and detector blur width are fitted by
    weighted least squares (``scipy.optimize.least_squares``); the focal-spot width stays at the
    scene value, because with one object height only the combined Gaussian width is identifiable
-   (notes §4). Impulsive pulses are masked (high-pass robust z > 6, dilated). The noise model
+   (docs/algorithms/diagnosis.md, section 'Identifiability'). Impulsive pulses are masked
+   (high-pass robust z > 6, dilated). The noise model
    ``v(mu) = K (mu - b) + s_r^2`` is estimated from the recording itself: robust (MAD) variance of
    the high-passed residual ``r - mean4(r)`` per bin of expected intensity, then a weighted line;
    the high-pass keeps smooth model mismatch out of the noise estimate.
@@ -14,7 +15,8 @@ Algorithm (notes ``physics.md`` §6–§7), on a single-channel linear recording
    profiles along rows, columns, radius, signed edge distance, thickness and intensity.
 3. **Rank.** For each library term and each point of its shape grid, Jacobian columns by central
    differences; projected Rao score ``S = |P_B⊥ z|²`` with the current model's Jacobian projected
-   out (``B⊥ = B - Q0 Q0ᵀ B``; the projection is essential, notes §6.3);
+   out (``B⊥ = B - Q0 Q0ᵀ B``; the projection is essential, docs/algorithms/diagnosis.md,
+   section '3. Rank: projected score test');
    ``ΔBIC_est = S - (d + n_grid) ln n``. Confusability = largest canonical correlation of the
    projected column spaces of the two best candidates (> 0.9 is flagged).
 4. **Extend + confirm.** Start from the grid point and the one-step amplitude, refit ALL
@@ -78,7 +80,8 @@ class DiagnosisOptions:
         before binning (avoids aliasing of sharp edges); the fitted width cannot go below it.
     fixed_offset_dn : float or None
         Hold the camera offset at this value (from a dark frame: the acquisition that separates
-        a uniform glare floor from the black level, notes §4); default: fitted.
+        a uniform glare floor from the black level; docs/algorithms/diagnosis.md, section
+        'Identifiability'); default: fitted.
     noise_model_binned : (float, float) or None
         ``(K, c)`` with ``v(mu) = K mu + c`` (absolute DN) for the *binned* recording, e.g. from
         repeated frames

@@ -1,7 +1,7 @@
 """Fit the SABER source + detector blur model to radiographs of straight edges.
 
-Method (``shared/notes/blur_estimation.md`` sections 2-4 and 12)
------------------------------------------------------------------
+Method (``docs/algorithms/psf.md``, sections 'Edge forward model' and 'Fit')
+-----------------------------------------------------------------------------
 Every edge image ``j`` is normalised (``(raw - dark) / (bright - dark)`` when flat and dark frames
 are given), then modelled as
 

@@ -1,7 +1,7 @@
 """SABER-style blur model: source (focal-spot) PSF, detector PSF, and the kernel sampler.
 
 The model follows Mohan, Panas and Cuadra, "SABER: A systems approach to blur estimation and
-reduction in X-ray imaging", IEEE TIP 2020 (see ``shared/notes/blur_estimation.md`` section 2):
+reduction in X-ray imaging", IEEE TIP 2020 (see ``docs/algorithms/psf.md``, section 'Model'):
 
 * every component has the exponential-power profile ``exp(-(s * r) ** p)`` with
   ``s = 2 * ln(2) ** (1 / p) / FWHM`` (``p = 1`` exponential, ``p = 2`` Gaussian);

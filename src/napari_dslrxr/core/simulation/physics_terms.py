@@ -1,7 +1,8 @@
 """Declarative library of physics terms the simple lens-coupled model leaves out.
 
 Each :class:`PhysicsTerm` names one effect of the X-ray → screen → mirror → lens → camera chain
-(notes ``physics.md`` §3), says at which stage of the chain it acts, lists its parameters with
+(docs/algorithms/simulation.md, section 'Physics terms'), says at which stage of the chain it
+acts, lists its parameters with
 their null values (effect switched off), prior ranges, probe values for the score test and a
 grid for nonlinear shape parameters, and carries an ``apply(state, params)`` that modifies the
 :class:`ChainState` in place. The same functions drive the simulator and the diagnosis, so a
@@ -183,7 +184,8 @@ class PhysicsTerm:
     covariate : str
         Organising covariate of its residual signature (profile to look at).
     separating : str
-        Acquisition that separates it from its confusable partners (notes §4).
+        Acquisition that separates it from its confusable partners (docs/algorithms/diagnosis.md,
+        section 'Identifiability').
     """
 
     name: str
@@ -242,7 +244,8 @@ def _px(grid: ChainGrid, length_mm: float) -> float:
 
 def _apply_beam_hardening(state: ChainState, p: dict) -> None:
     # Mono attenuation over-predicts thick parts: p_meas = p / (1 + beta p) = p - beta p^2 + ...
-    # (notes §3.8 to first order; this form stays monotone for opaque objects).
+    # (docs/algorithms/simulation.md, 'Beam hardening': equal to first order; this form stays
+    # monotone for opaque objects).
     state.path = state.path / (1.0 + p["beta"] * state.path)
 
 
@@ -256,7 +259,8 @@ def _apply_heel(state: ChainState, p: dict) -> None:
 def _apply_inverse_square(state: ChainState, p: dict) -> None:
     g = state.grid
     rho2 = _radial_sq(g, p["foot_x"], p["foot_y"])
-    # cos^3 gamma with cos gamma = 1/sqrt(1 + s rho^2), s = (R_diag / SDD_eff)^2 (notes §3.2).
+    # cos^3 gamma with cos gamma = 1/sqrt(1 + s rho^2), s = (R_diag / SDD_eff)^2
+    # (docs/algorithms/simulation.md, section 'Inverse square').
     state.fluence = state.fluence * (1.0 + p["strength"] * rho2) ** -1.5
 
 
@@ -292,7 +296,8 @@ def _fft_filter(image: np.ndarray, transfer: np.ndarray, grid: ChainGrid) -> np.
 
 def _apply_scatter(state: ChainState, p: dict) -> None:
     g = state.grid
-    # Object scatter ∝ primary · (-ln T) spread by a wide kernel (notes §3.7, XCIST-style SKS).
+    # Object scatter ∝ primary · (-ln T) spread by a wide kernel, a scatter-kernel superposition
+    # (docs/algorithms/simulation.md, section 'Object scatter').
     source = state.fluence * state.scatter_source
     state.signal = state.signal + p["amplitude"] * _fft_filter(
         source, _gauss_transfer(g, _px(g, p["sigma_mm"])), g)
@@ -319,7 +324,8 @@ def _apply_mirror_ghost(state: ChainState, p: dict) -> None:
     g = state.grid
     a = np.deg2rad(p["axis_deg"])
     d_px = _px(g, p["shift_mm"])
-    # O = L(q) + eps L(q + d): front-face reflection of a back-silvered mirror (notes §3.5).
+    # O = L(q) + eps L(q + d): front-face reflection of a back-silvered mirror
+    # (docs/algorithms/simulation.md, section 'Mirror ghost').
     # The shift's phase factor is separable in fy and fx.
     shift = g.cached(("shift", d_px, p["axis_deg"]), lambda: (
         np.exp(2j * np.pi * d_px * np.sin(a) * g.fy) * np.exp(2j * np.pi * d_px * np.cos(a) * g.fx)))
@@ -348,7 +354,8 @@ def _apply_vignetting(state: ChainState, p: dict) -> None:
 
 
 def _apply_detector_gamma(state: ChainState, p: dict) -> None:
-    # Soft non-linearity of the camera response DN = b + K e (1 - kappa e) (notes §3.10).
+    # Soft non-linearity of the camera response DN = b + K e (1 - kappa e)
+    # (docs/algorithms/simulation.md, section 'Detector gamma').
     state.light = state.light * (1.0 - p["kappa"] * state.light)
 
 
@@ -362,7 +369,8 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
         (P("beta", 0.0, (0.0, 0.5), 0.01, 1e-3),),
         "beta", _apply_beam_hardening,
         physics="Polychromatic beam: the mono model over-predicts attenuation of thick parts; "
-                "measured line integral p / (1 + beta p) ≈ p - beta p^2 (notes §3.8).",
+                "measured line integral p / (1 + beta p) ≈ p - beta p^2 "
+                "(docs: simulation.md, 'Beam hardening').",
         covariate="line integral p", separating="two-material wedge; kV series"),
     PhysicsTerm(
         "heel_effect", "fluence",
@@ -370,7 +378,7 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
          P("angle_deg", 0.0, (-360.0, 360.0), 0.0, 1.0, grid=(0.0, 90.0), unit="deg", period=360.0)),
         "h1", _apply_heel,
         physics="Anode heel: fluence falls toward the anode along the anode-cathode axis, "
-                "exp(h1 u + h2 u^2), u in half-sides (notes §3.1).",
+                "exp(h1 u + h2 u^2), u in half-sides (docs: simulation.md, 'Heel effect').",
         covariate="position along the anode-cathode axis", separating="rotate the tube 180°"),
     PhysicsTerm(
         "inverse_square", "fluence",
@@ -378,7 +386,7 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
          P("foot_y", 0.0, (-0.8, 0.8), 0.0, 0.02)),
         "strength", _apply_inverse_square,
         physics="Inverse square and obliquity: cos^3 of the angle from the X-ray foot point, "
-                "(1 + s rho^2)^(-3/2), s = (half diagonal / SDD)^2 (notes §3.2).",
+                "(1 + s rho^2)^(-3/2), s = (half diagonal / SDD)^2 (docs: simulation.md, 'Inverse square').",
         covariate="radius about the X-ray foot point", separating="SDD series (f-number does not change it)"),
     PhysicsTerm(
         "scatter", "primary",
@@ -386,7 +394,7 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
          P("sigma_mm", 2.0, (0.3, 30.0), 2.0, 0.1, grid=(1.0, 2.0, 4.0, 8.0), unit="mm")),
         "amplitude", _apply_scatter,
         physics="Object scatter: a low-frequency haze A [(I T (-ln T)) ⊛ G_sigma] under and beside "
-                "thick parts (notes §3.7).",
+                "thick parts (docs: simulation.md, 'Object scatter').",
         covariate="blurred thickness (neighbourhood p)", separating="air-gap or field-size series; beam-stop discs"),
     PhysicsTerm(
         "focal_spot_shape", "psf",
@@ -394,7 +402,8 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
          P("axis_deg", 0.0, (-360.0, 360.0), 0.0, 1.0, grid=(0.0, 90.0), unit="deg", period=180.0)),
         "half_separation_mm", _apply_focal_spot_shape,
         physics="Two-lobed focal spot (line focus): 1/2[N(-a) + N(+a)] along one axis, scaled by "
-                "M - 1 at the detector; anisotropic 'W'-shaped edge residual (notes §3.9).",
+                "M - 1 at the detector; anisotropic 'W'-shaped edge residual "
+                "(docs: simulation.md, 'Focal-spot shape').",
         covariate="edge orientation", separating="two object heights × two edge orientations; pinhole"),
     PhysicsTerm(
         "veiling_glare", "psf",
@@ -402,7 +411,8 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
          P("range_mm", 1.0, (0.05, 20.0), 1.0, 0.05, grid=(0.2, 0.5, 1.0, 2.0, 4.0, 8.0), unit="mm")),
         "eta", _apply_veiling_glare,
         physics="Screen veiling glare: long exponential PSF tail (1 - eta) G + eta exp(-r/w)/(2 pi w^2) "
-                "from grain scatter, backing reflection and light piping (notes §3.4).",
+                "from grain scatter, backing reflection and light piping "
+                "(docs: simulation.md, 'Veiling glare').",
         covariate="signed distance to edges", separating="thin high-Z edge without scatterer"),
     PhysicsTerm(
         "mirror_ghost", "psf",
@@ -412,28 +422,29 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
          P("axis_deg", 0.0, (-360.0, 360.0), 0.0, 1.0, grid=(0.0, 90.0), unit="deg", period=360.0)),
         "epsilon", _apply_mirror_ghost,
         physics="Mirror ghost: the front face of a back-silvered mirror adds a faint shifted copy "
-                "eps L(q + d) (notes §3.5, §1: eps ≈ 6.6 %, d 1.5-3 mm).",
+                "eps L(q + d), eps ≈ 6.6 %, d 1.5-3 mm (docs: simulation.md, 'Mirror ghost').",
         covariate="residual autocorrelation at lag d", separating="front-surface mirror"),
     PhysicsTerm(
         "lens_distortion", "optics",
         (P("k1", 0.0, (-0.1, 0.1), 0.005, 5e-4),),
         "k1", _apply_lens_distortion,
         physics="Radial lens distortion q_d = q (1 + k1 rho^2) about the image centre; edge "
-                "dipoles growing with radius (notes §3.6).",
+                "dipoles growing with radius (docs: simulation.md, 'Lens distortion').",
         covariate="radius × edge direction", separating="grid phantom"),
     PhysicsTerm(
         "vignetting", "optics",
         (P("k1", 0.0, (-0.8, 0.3), -0.02, 2e-3), P("k2", 0.0, (-0.8, 0.3), -0.02, 2e-3),
          P("centre_x", 0.0, (-0.8, 0.8), 0.0, 0.02), P("centre_y", 0.0, (-0.8, 0.8), 0.0, 0.02)),
         "k1", _apply_vignetting,
-        physics="Lens vignetting 1 + k1 rho^2 + k2 rho^4 about the optical centre (notes §3.3).",
+        physics="Lens vignetting 1 + k1 rho^2 + k2 rho^4 about the optical centre "
+                "(docs: simulation.md, 'Vignetting').",
         covariate="radius about the optical centre", separating="flats at two f-numbers"),
     PhysicsTerm(
         "detector_gamma", "camera",
         (P("kappa", 0.0, (-0.3, 0.3), 0.01, 1e-3),),
         "kappa", _apply_detector_gamma,
         physics="Non-linear camera response DN = b + K e (1 - kappa e), e relative to the open "
-                "field (notes §3.10).",
+                "field (docs: simulation.md, 'Detector gamma').",
         covariate="expected intensity", separating="exposure series / photon transfer"),
 )
 

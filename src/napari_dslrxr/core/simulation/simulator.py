@@ -1,6 +1,6 @@
 """Forward model of the X-ray imaging chain and the scene file that drives it.
 
-Chain (notes ``physics.md`` §2, mono effective energy; every library term of
+Chain (docs/algorithms/simulation.md, section 'Forward model'; mono effective energy; every library term of
 :mod:`.physics_terms` hooks in at its stage)::
 
     p(u)    = mu_eff · t(u)                         line integral, fine grid   [path]
@@ -14,7 +14,8 @@ Chain (notes ``physics.md`` §2, mono effective energy; every library term of
 
 ``mu_eff`` comes from a table of mass attenuation coefficients at an effective energy
 ``E_eff = 0.5 kVp`` (a filtered tungsten spectrum at 60 kVp, 2.5 mm Al has HVL 2.03 mm Al,
-i.e. mu = 0.341 /mm = aluminium at ≈ 29 keV; notes §1). Spectral hardening is the
+i.e. mu = 0.341 /mm = aluminium at ≈ 29 keV; docs/algorithms/simulation.md, section 'Effective
+energy and attenuation'). Spectral hardening is the
 ``beam_hardening`` term.
 
 Scene file (TOML)::
@@ -412,7 +413,8 @@ def simulate_recording(scene: Scene, *, effects: dict[str, dict[str, float]] | N
     model = ChainModel(scene.thickness_mm, scene.grid())
     expected = model.expected(scene.base_params(), terms)
     if scene.cfa:
-        # RGGB plane gains of a green-emitting screen seen through a Bayer filter (notes §3.14).
+        # RGGB plane gains of a green-emitting screen seen through a Bayer filter
+        # (docs/algorithms/simulation.md, section 'Bayer colour filter').
         gains = np.ones(expected.shape)
         gains[0::2, 0::2], gains[1::2, 1::2] = 0.15, 0.10
         expected = scene.offset_dn + (expected - scene.offset_dn) * gains

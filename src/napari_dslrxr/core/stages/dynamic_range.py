@@ -10,7 +10,7 @@ variation from detail (Kodak US 6,069,979; Fuji DRC)::
 with ``latitude`` < 1 (low-frequency gain) and ``detail_gain`` >= 1. A plain blur smears a
 strong edge (collimator, skin line, metal) into ``x_L``, so ``x - x_L`` gets a bump on both
 sides of the edge and the output a bright/dark halo of the kernel's width. The default
-low-pass is therefore edge-aware (the pitfall named in the notes, section 5): the
+low-pass is therefore edge-aware (docs/algorithms/dynamic_range.md, section 'Halos at strong edges'): the
 Gastal-Oliveira domain-transform recursive filter (``cv2.ximgproc.dtFilter``, spatial sigma
 ``sigma_s``, range sigma ``edge_step``) smooths up to, never across, steps larger than
 ``edge_step``; those steps stay in ``x_L`` and are compressed by ``latitude`` without a halo.

@@ -6,7 +6,7 @@ hits on its sensor: bright spots of one pixel on the raw mosaic that demosaicing
 only the detected pixels; every other pixel is returned bit-for-bit unchanged.
 
 Model (Frosio & Borghese, IEEE TMI 28(1), 2009; Frosio, Abati & Borghese, IJCARS 2008;
-notes in ``shared/notes/stages.md`` section 1). For a pixel value ``x`` and the median ``m``
+``docs/algorithms/impulse.md``). For a pixel value ``x`` and the median ``m``
 of the 8 detection samples around it (centre excluded, so ``d`` is Gaussian) the residual
 ``d = x - m`` is a mixture
 
@@ -569,8 +569,9 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
                       photon_counting: bool, shape) -> np.ndarray:
     """Flat indices of about ``count`` pixels in the flattest half of the image.
 
-    Texture and edges inflate the residual and would bias the noise fit (notes, pitfall
-    (a)); the fit therefore uses pixels whose local slope of the detection median (between
+    Texture and edges inflate the residual and would bias the noise fit
+    (docs/algorithms/impulse.md, section 'Pitfalls'); the fit therefore uses pixels whose
+    local slope of the detection median (between
     the direct neighbours, whose medians use other samples than the pixel's own) is at most
     the median slope, the slope being divided by sqrt(m) for photon-counting channels so
     that bright areas are not excluded just for their larger noise. Regular subsample
