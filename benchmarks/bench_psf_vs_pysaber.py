@@ -1,7 +1,7 @@
 """SABER blur estimation: napari-dslrxr's joint edge fit against pysaber 1.0.0, side by side.
 
 Edge radiographs are synthesised from a known source + detector model (the SABER paper's
-reference blur and demo geometry, shared/notes/blur_estimation.md section 8-9): two object
+reference blur and demo geometry, as published with the paper and its demo): two object
 distances (SOD 24.75 and 50.25 mm, SDD 71.0 mm), a horizontal and a vertical edge at each,
 tilted 2-4 degrees, pixel-area integrated (8 x 8 sub-samples), transmission 0.015 / 0.98, Gaussian
 noise sigma 0.006. Both tools fit the same four images; each predicts the blur kernel at a third,

@@ -22,7 +22,7 @@ padding as ours): the best any linear, shift-invariant filter can do on the crop
 competitor (it uses the truth); it shows how much room is left above skimage's tuned Wiener for
 a non-linear prior.
 
-Metrics: PSNR and SSIM (data range 1) on the crop; GCF (Matkovic et al. 2005, notes section 7.1)
+Metrics: PSNR and SSIM (data range 1) on the crop; GCF (Matkovic et al. 2005; docs/algorithms/metrics.md)
 of the 8-bit display image (the truth's [0, 1] range mapped to 0..255, same for all);
 overshoot/undershoot around strong edges (99.9th percentile of ``g1(x) - max_7x7(truth)`` and of
 ``min_7x7(truth) - g1(x)`` within 10 px of edges, ``g1`` a 1 px Gaussian against pixel noise),

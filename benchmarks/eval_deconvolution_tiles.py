@@ -11,7 +11,7 @@ levels:
   ``niqa_edge`` shows on its bright side (relative noise 1.5 %, i.e. about 4 450 counts, measured
   from repeat-frame differences);
 * ``28000`` counts: relative noise 0.6 % at white, the flat-field noise quoted for the SABER
-  experiments (notes/blur_estimation.md) and about a base-ISO DSLR exposure near full well.
+  experiments (the paper's fit logs) and about a base-ISO DSLR exposure near full well.
 
 Per tile: GCF (8-bit display, as in ``eval_deconvolution.py``) of the truth, of the noisy
 blurred input and of our default output (adaptive prior, ``reg="auto"``, no truth); PSNR of ours

@@ -108,12 +108,12 @@ def test_gcf_rgb_uses_rec709_luma():
     assert global_contrast_factor(rgb) == pytest.approx(global_contrast_factor(grey), rel=1e-9)
 
 
-def test_gcf_grows_with_contrast_and_matches_notes_checkerboard(rng):
+def test_gcf_grows_with_contrast_and_matches_the_documented_checkerboard(rng):
     base = rng.integers(0, 256, (96, 128)).astype(np.float64)
     values = [global_contrast_factor(np.clip(a * (base - 127) + 127, 0, 255).astype(np.uint8))
               for a in (0.25, 0.5, 0.75, 1.0)]
     assert all(a < b for a, b in zip(values, values[1:], strict=False))
-    # Notes (section 7.1): a 64x64 checkerboard of grey levels 127 and 128 gives 0.048; by
+    # docs/algorithms/metrics.md, section 'Checks': a 64x64 checkerboard of grey levels 127 and 128 gives 0.048; by
     # hand, C1 = 100 ((128/255)^1.1 - (127/255)^1.1) and the coarser levels are flat except
     # for the 25 px level (64 px into 3 superpixels of 21.3 px do not average exactly).
     checker = (127 + np.indices((64, 64)).sum(0) % 2).astype(np.uint8)

@@ -87,7 +87,8 @@ def test_concealed_term_is_named_and_recovered(scene, name):
     assert result.added[0].delta_bic > 10
     assert result.final_chi2_per_dof <= 1.05
     assert not result.unexplained
-    # radial terms about a free centre are the notes' confusable pair (§4): must be flagged
+    # radial terms about a free centre are a confusable pair (docs/algorithms/diagnosis.md,
+    # section 'Identifiability'): must be flagged
     partner = {"inverse_square": "vignetting", "vignetting": "inverse_square"}.get(name)
     if partner:
         assert partner in [n for n, c in result.added[0].confusable_with if c > 0.9]
