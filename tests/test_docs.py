@@ -85,3 +85,16 @@ def test_documented_defaults_match_the_parameter_classes():
                 assert float(text.replace(",", "")) == float(value), (section, key, text)
             checked += 1
     assert checked >= 40
+
+
+def test_module_and_test_paths_named_in_the_pages_exist():
+    pages = [ROOT / "docs" / "README.md", *ALGORITHMS.glob("*.md")]
+    named = 0
+    for page in pages:
+        text = page.read_text(encoding="utf-8")
+        for module in re.findall(r"`(core/[\w/]+\.py)", text):
+            assert (SOURCE / module).is_file(), f"{page.name} names {module}, which does not exist"
+            named += 1
+        for test in re.findall(r"`(tests/[\w/]+\.py)`", text):
+            assert (ROOT / test).is_file(), f"{page.name} names {test}, which does not exist"
+    assert named >= 20
