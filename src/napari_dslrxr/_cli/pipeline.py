@@ -26,7 +26,8 @@ def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, b
         written = run_file(job["input"], job["out_dir"], params=params, flat_paths=job["flats"],
                            dark_paths=job["darks"], psf_path=job["psf"],
                            source_to_object_mm=job["sod"], source_to_detector_mm=job["sdd"],
-                           patient=job["patient"], reference_cache=reference_cache)
+                           patient=job["patient"], reference_cache=reference_cache,
+                           warn=lambda line: print(f"dslrxr: {job['input']}: {line}", file=sys.stderr))
         return job["input"], True, f"wrote {len(written)} file(s)", time.perf_counter() - t0
     except DslrxrError as exc:
         return job["input"], False, str(exc), time.perf_counter() - t0

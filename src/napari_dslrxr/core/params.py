@@ -1,7 +1,7 @@
 """All pipeline parameters in one dataclass, saved and loaded as commented TOML.
 
 :class:`PipelineParams` holds one dataclass per stage; the TOML file has one table per stage
-(``[impulse]``, ``[flatfield]``, ``[region]``, ``[deblur]``, ``[dynamic_range]``,
+(``[input]``, ``[impulse]``, ``[flatfield]``, ``[region]``, ``[deblur]``, ``[dynamic_range]``,
 ``[contrast]``, ``[output]``). The command line (``dslrxr run -c params.toml``) and the napari
 widgets read and write the same file. Missing keys take their defaults; unknown keys, wrong
 types and out-of-range values raise :class:`~.errors.ParameterError` with a one-line message
@@ -24,6 +24,7 @@ import tomli_w
 from .stages.contrast import ContrastParams
 from .stages.dynamic_range import DynamicRangeParams
 from .errors import InputError, ParameterError
+from .io.input_kind import InputParams
 from .stages.flatfield import FlatFieldParams
 from .stages.region import RegionParams
 
@@ -134,6 +135,7 @@ class BatchParams:
 class PipelineParams:
     """Every parameter of the six-stage pipeline, one dataclass per stage."""
 
+    input: InputParams = field(default_factory=InputParams)
     impulse: typing.Any = field(default_factory=_default_impulse)
     flatfield: FlatFieldParams = field(default_factory=FlatFieldParams)
     region: RegionParams = field(default_factory=RegionParams)
@@ -148,6 +150,7 @@ class PipelineParams:
 RUN_ONLY_SECTIONS = ("batch",)
 
 SECTION_HELP = {
+    "input": "what the input is: a camera frame (linear counts) or a display radiograph (bone bright)",
     "impulse": "(i) impulse (pulse) removal on the colour image: switching median driven by a Poisson + pulse mixture",
     "flatfield": "(ii) flat field per colour channel: (R - D) / (F - D) x mean(F - D)",
     "region": "(iii) exposed screen region and value-of-interest scaling",

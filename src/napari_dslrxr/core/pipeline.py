@@ -344,15 +344,21 @@ def scale_display_radiograph(image: np.ndarray, params: PipelineParams | None = 
         True when ``mask`` is a detected collimated field, whose outside the display should
         shutter (a caller's own mask only restricts the statistics).
     """
-    params = params or PipelineParams()
+    x, mask, field, _ = _scale_display(image, params or PipelineParams(), mask)
+    return x, mask, field is not None
+
+
+def _scale_display(image: np.ndarray, params: PipelineParams, mask: np.ndarray | None):
+    """:func:`scale_display_radiograph`, also giving the collimated field found (a
+    :class:`~.region.Region`, or None) and the VOI window."""
     x = np.asarray(image, np.float32).copy()
-    fill_outside = False
+    field = None
     if mask is None and params.region.detect_collimation:
-        field = detect_collimation(x, inset_px=params.region.collimation_inset_px)
-        if field.detected:
-            mask, fill_outside = field.mask, True
-    _scale_to_voi_window(x, x[mask] if mask is not None else x, params)
-    return x, mask, fill_outside
+        found = detect_collimation(x, inset_px=params.region.collimation_inset_px)
+        if found.detected:
+            field, mask = found, found.mask
+    window = _scale_to_voi_window(x, x[mask] if mask is not None else x, params)
+    return x, mask, field, window
 
 
 def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
@@ -379,9 +385,84 @@ def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
     ndarray, float32, (H, W)
         Display values in [0, 1].
     """
+    return process_display_radiograph(image, params=params, mask=mask).display
+
+
+#: Stage names of the display-radiograph path, in the order their progress steps are yielded.
+DISPLAY_STAGES = ("region", "dynamic_range", "contrast", "display")
+
+
+def run_display_pipeline(image: np.ndarray, *, params: PipelineParams | None = None,
+                         mask: np.ndarray | None = None,
+                         keep_intermediates: bool = False) -> Generator[tuple[int, int], None, PipelineResult]:
+    """The display path for a radiograph already in display form, yielding ``(done, total)``.
+
+    What ``dslrxr run`` does with a display radiograph (a CR/DX DICOM, bone bright after
+    MONOCHROME1 inversion): :func:`scale_display_radiograph` (collimated field, value-of-interest
+    window), then the stages of :func:`apply_display_stages` (dynamic range, contrast, display
+    curve; the collimator band set to ``params.output.outside_region``). No impulse removal,
+    flat field or logarithm: the image is not linear light. ``params.output.polarity =
+    "as_captured"`` inverts the scaled image (more exposure brighter).
+
+    Parameters
+    ----------
+    image : ndarray, (H, W) or (H, W, 3)
+        Display radiograph, higher = brighter on display (colour is averaged).
+    params : PipelineParams, optional
+    mask : ndarray, bool, optional
+        Region for the statistics (default: the detected collimated field).
+    keep_intermediates : bool
+        Keep ``"attenuation"`` (the VOI-scaled input), ``"dynamic_range"`` and ``"contrast"``.
+
+    Returns
+    -------
+    PipelineResult
+        Via ``StopIteration.value``; use :func:`process_display_radiograph` for a plain call.
+    """
+    from .io import validate_image
+
     params = params or PipelineParams()
-    x, mask, fill_outside = scale_display_radiograph(image, params, mask)
-    return apply_display_stages(x, mask, params, fill_outside=fill_outside)
+    image = validate_image(image, "image")
+    grey = image.mean(axis=2, dtype=np.float32) if image.ndim == 3 else image
+    total = len(DISPLAY_STAGES)
+    clock = time.perf_counter
+    timings: dict[str, float] = {}
+    inter: dict = {}
+    t0 = clock()
+    x, mask, field, (lo, hi) = _scale_display(grey, params, mask)
+    if params.output.polarity == "as_captured":
+        np.subtract(np.float32(1.0), x, out=x)
+    h, w = x.shape
+    if field is not None:
+        region = field
+    else:
+        whole = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+        region = Region(np.ones((h, w), bool) if mask is None else mask, whole, detected=False)
+    results = {"region": {"kind": "collimated field" if field is not None else "whole frame (no collimator found)",
+                          "polygon_xy": region.polygon_xy.round(2).tolist(), "detected": field is not None,
+                          "area_fraction": float(region.mask.mean())},
+               "voi_window": [lo, hi]}
+    if keep_intermediates:
+        inter["attenuation"] = x.copy()
+    timings["region"] = clock() - t0
+    yield 1, total
+    steps = _display_steps(x, mask, params, fill_outside=field is not None)
+    del x
+    for step, stage in ((2, "dynamic_range"), (3, "contrast"), (4, "display")):
+        t0 = clock()
+        output = next(steps)
+        if keep_intermediates and stage != "display":
+            inter[stage] = output.copy()
+        timings[stage] = clock() - t0
+        yield step, total
+    return PipelineResult(display=output, region=region, voi_window=(lo, hi), timings_s=timings,
+                          results=results, intermediates=inter, params=params)
+
+
+def process_display_radiograph(image: np.ndarray, *, progress: Callable[[int, int], object] | None = None,
+                               **kwargs) -> PipelineResult:
+    """Plain-function form of :func:`run_display_pipeline` (same keyword arguments)."""
+    return drive(run_display_pipeline(image, **kwargs), progress)
 
 
 def drive(gen: Generator, progress: Callable[[int, int], object] | None = None):
@@ -566,8 +647,14 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
              source_to_object_mm: float | None = None, source_to_detector_mm: float | None = None,
              reference: FlatReference | None = None, patient: dict | None = None,
              progress: Callable[[int, int], object] | None = None,
-             reference_cache: dict | None = None) -> list[Path]:
+             reference_cache: dict | None = None,
+             warn: Callable[[str], object] | None = None) -> list[Path]:
     """Read one frame, run the pipeline and write its outputs (with sidecars).
+
+    The input's kind (:func:`~napari_dslrxr.core.io.input_kind.decide_input_kind` under
+    ``params.input.input_kind``) picks the path: a camera frame goes through the whole chain,
+    a display radiograph (a CR/DX DICOM...) through :func:`run_display_pipeline` only. The
+    decision is recorded in the sidecar (``results.input_kind``).
 
     Parameters
     ----------
@@ -591,16 +678,28 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
         references keyed by :func:`flat_reference_key`, PSF kernels by
         :func:`psf_kernel_key`; a batch passes one dict so its flats, darks and PSF model are
         read and prepared once, not once per file.
+    warn : callable, optional
+        Receives one line (without the file name) when the input kind was guessed or a given
+        reference frame or PSF does not apply to the input's kind.
 
     Returns
     -------
     list of Path
         Files written.
     """
+    from .io.input_kind import DISPLAY, input_kind_of
     from .io import read_image
 
     params = validate_params(params or PipelineParams())
     loaded = read_image(input_path)
+    kind = input_kind_of(loaded, params.input.input_kind)
+    if warn is not None and kind.message():
+        warn(kind.message())
+    if kind.kind == DISPLAY:
+        return _run_display_file(loaded, out_dir, kind, params=params, flat_paths=flat_paths,
+                                 dark_paths=dark_paths, psf_path=psf_path, patient=patient,
+                                 progress=progress, warn=warn, source_to_object_mm=source_to_object_mm,
+                                 source_to_detector_mm=source_to_detector_mm)
     black = None
     image = loaded.data
     impulses_removed = None
@@ -646,6 +745,7 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
             reference_cache[cache_key] = reference
     result = process_frame(image, params=params, reference=reference, psf_kernel=kernel, progress=progress,
                            impulses_removed=impulses_removed)
+    result.results["input_kind"] = kind.as_record()
     if impulses_removed is not None:
         result.timings_s["impulse"] = t_cfa
     inputs = [Path(input_path), *map(Path, flat_paths), *map(Path, dark_paths)]
@@ -663,4 +763,36 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     result.results["reference_frames"] = {"flat": len(flat_paths), "dark": len(dark_paths)}
     return write_outputs(result, paths, inputs=inputs, params=params, pixel_spacing_mm=spacing,
                          patient=patient, uid_seed=run_identity(inputs, params, extra),
+                         run_options=run_options)
+
+
+def _run_display_file(loaded, out_dir: str | os.PathLike, kind, *, params: PipelineParams,
+                      flat_paths: Sequence[str | os.PathLike], dark_paths: Sequence[str | os.PathLike],
+                      psf_path: str | os.PathLike | None, patient: dict | None,
+                      progress: Callable[[int, int], object] | None,
+                      warn: Callable[[str], object] | None, source_to_object_mm: float | None = None,
+                      source_to_detector_mm: float | None = None) -> list[Path]:
+    """:func:`run_file` for a display radiograph: the display path, then the same outputs.
+
+    References given for the batch are checksummed and recorded (with their roles and the
+    deblurring geometry) like a camera frame's, so a rerun compares them the same way."""
+    ignored = [what for what, given in (("flat/dark frames", flat_paths or dark_paths), ("the PSF", psf_path))
+               if given]
+    if ignored and warn is not None:
+        warn(f"{' and '.join(ignored)} not applied: a display radiograph is not linear light")
+    result = process_display_radiograph(loaded.data, params=params, progress=progress)
+    result.results["input_kind"] = kind.as_record()
+    result.results.update({"impulse": "skipped (display radiograph)", "flatfield": "skipped (display radiograph)",
+                           "deblur": "skipped (display radiograph)"})
+    inputs = [loaded.path, *map(Path, flat_paths), *map(Path, dark_paths), *([Path(psf_path)] if psf_path else [])]
+    spacing = loaded.metadata.get("pixel_spacing_mm")
+    spacing = float(spacing[0]) if spacing else None
+    extra = f"display|{json.dumps(patient or {}, sort_keys=True)}"
+    result.results["reference_frames"] = {"flat": len(flat_paths), "dark": len(dark_paths)}
+    run_options = None
+    if psf_path is not None and source_to_object_mm is not None and source_to_detector_mm is not None:
+        run_options = {"source_to_object_mm": float(source_to_object_mm),
+                       "source_to_detector_mm": float(source_to_detector_mm)}
+    return write_outputs(result, output_paths(loaded.path, out_dir, params), inputs=inputs, params=params,
+                         pixel_spacing_mm=spacing, patient=patient, uid_seed=run_identity(inputs, params, extra),
                          run_options=run_options)

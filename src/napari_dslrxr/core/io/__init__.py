@@ -4,7 +4,9 @@
   writers, structured (TOML/JSON) files and checksums;
 * :mod:`.dicom` - the DICOM DX writer with deterministic UIDs;
 * :mod:`.provenance` - the JSON sidecar written beside every output (parameters, version, input
-  checksums, timings).
+  checksums, timings);
+* :mod:`.input_kind` - whether an input is a camera frame (linear light) or a display radiograph
+  (bone bright): the one rule ``dslrxr run``, the reader and the contrast widget use.
 
 Depends only on :mod:`napari_dslrxr.core.errors`; every other area builds on it.
 """
@@ -21,6 +23,8 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "file_sha256", "check_not_an_input", "atomic_write", "write_tiff", "write_png"),
     "dicom": ("DX_FOR_PRESENTATION", "ALLOWED_PATIENT_FIELDS", "deterministic_uid", "write_dicom_dx"),
     "provenance": ("sidecar_path", "to_jsonable", "describe_inputs", "library_versions", "write_sidecar"),
+    "input_kind": ("CAMERA", "DISPLAY", "INPUT_KINDS", "InputKind", "InputParams", "decide_input_kind",
+        "input_kind_of"),
 }
 
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

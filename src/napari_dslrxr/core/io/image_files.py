@@ -536,6 +536,7 @@ def _read_dicom(path: Path, limit: int) -> LoadedImage:
             bits_stored = int(ds.get("BitsStored", data.dtype.itemsize * 8) or data.dtype.itemsize * 8)
             spacing = ds.get("ImagerPixelSpacing", None) or ds.get("PixelSpacing", None)
             modality = str(ds.get("Modality", ""))
+            relationship = str(ds.get("PixelIntensityRelationship", "") or "").strip()
     except InputError:
         raise
     except MemoryError:
@@ -552,6 +553,8 @@ def _read_dicom(path: Path, limit: int) -> LoadedImage:
         elif data.size:
             data = (data.max() + data.min()) - data
     meta: dict = {"photometric_original": photometric, "bits_stored": bits_stored, "modality": modality}
+    if relationship:
+        meta["pixel_intensity_relationship"] = relationship
     if spacing is not None:
         try:
             spacing_mm = [float(spacing[0]), float(spacing[1])]
