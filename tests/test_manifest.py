@@ -51,6 +51,7 @@ def test_every_contribution_points_at_a_declared_command():
     used = [r["command"] for r in contributions.get("readers", [])]
     used += [w["command"] for w in contributions.get("widgets", [])]
     used += [s["command"] for s in contributions.get("sample_data", [])]
+    used += [w["command"] for w in contributions.get("writers", [])]
     assert set(used) <= command_ids
     assert all(cid.startswith("napari-dslrxr.") for cid in command_ids)
     for menu_items in contributions.get("menus", {}).values():

@@ -7,7 +7,7 @@ import pytest
 from robustness import synthetic_files
 
 from napari_dslrxr import _reader
-from napari_dslrxr._reader import get_cfa_reader, get_reader, read_cfa_planes, read_radiographs
+from napari_dslrxr._reader import CLAIMED_EXTENSIONS, get_reader, read_cfa_planes, read_radiographs
 from napari_dslrxr.core.io import write_tiff
 
 BLACK_COUNTS = 256
@@ -38,10 +38,15 @@ def test_get_reader_returns_none_when_not_claimed_and_never_raises(path):
     assert get_reader(path) is None
 
 
-def test_cfa_reader_claims_raw_only():
-    assert get_cfa_reader("x.nef") is read_cfa_planes
-    assert get_cfa_reader("x.tif") is None
-    assert get_cfa_reader(object()) is None
+@pytest.mark.parametrize("name", sorted(f"file{ext}" for ext in CLAIMED_EXTENSIONS) + ["FILE.CR2", "x.NEF"])
+def test_exactly_one_reader_of_this_plugin_per_extension(name):
+    """npe2's reader resolution offers one reader of this plugin (two would make napari ask)."""
+    from npe2 import PluginManager
+
+    manager = PluginManager.instance()
+    manager.discover()
+    ours = [r.command for r in manager.iter_compatible_readers([name]) if r.plugin_name == "napari-dslrxr"]
+    assert ours == ["napari-dslrxr.get_reader"]
 
 
 def test_raw_opens_as_linear_rgb(tmp_path, rng):
@@ -103,16 +108,100 @@ def test_bad_file_becomes_a_notification_not_an_exception(tmp_path, monkeypatch)
     assert len(shown) == 3
 
 
+def test_layers_carry_the_input_kind(tmp_path, dng_file):
+    path, _ = dng_file
+    ((_, raw_kwargs, _),) = read_radiographs(str(path))
+    assert raw_kwargs["metadata"]["input_kind"]["kind"] == "camera"
+    grey = np.arange(40 * 50, dtype=np.uint16).reshape(40, 50)
+    synthetic_files.write_dicom(tmp_path / "cr.dcm", grey, photometric="MONOCHROME1", bits_stored=12)
+    ((_, dicom_kwargs, _),) = read_radiographs(str(tmp_path / "cr.dcm"))
+    kind = dicom_kwargs["metadata"]["input_kind"]
+    assert kind["kind"] == "display" and kind["certain"] and "MONOCHROME1" in kind["evidence"]
+
+
+def _menu_action(viewer, *titles: str):
+    """The QAction reached by following menu titles from the menu bar (ampersands and the
+    plugin name napari appends to plugin actions ignored)."""
+    menu = viewer.window._qt_window.menuBar()
+    for i, title in enumerate(titles):
+        matches = [a for a in menu.actions()
+                   if a.text().replace("&", "").removesuffix(" (DSLR Radiography)") == title]
+        assert matches, (title, [a.text() for a in menu.actions()])
+        if i == len(titles) - 1:
+            return matches[0]
+        menu = matches[0].menu()
+
+
 @pytest.mark.gui
-def test_viewer_opens_raw_with_either_reader(make_napari_viewer, dng_file):
+def test_bayer_planes_from_the_layers_menu(make_napari_viewer, dng_file, monkeypatch):
     path, _ = dng_file
     viewer = make_napari_viewer()
-    viewer.open(str(path), plugin="napari-dslrxr.get_reader")
+    shown = []
+    monkeypatch.setattr(_reader, "_notify_error", shown.append)
+    action = _menu_action(viewer, "Layers", "Data", "Show Bayer (CFA) planes of the selected raw layer")
+    viewer.add_image(np.zeros((16, 16)), name="not raw")
+    action.trigger()  # a layer made in napari: refused with a message, nothing added
+    assert len(shown) == 1 and "'not raw' was not opened from a camera raw file" in shown[0]
+    viewer.layers.clear()
+    viewer.open(str(path), plugin="napari-dslrxr")
     assert [layer.name for layer in viewer.layers] == ["frame"] and viewer.layers["frame"].rgb
-    viewer.open(str(path), plugin="napari-dslrxr.get_cfa_reader")
+    viewer.layers.selection.active = viewer.layers["frame"]
+    action.trigger()
     assert [layer.name for layer in viewer.layers][1:] == ["frame R", "frame G1", "frame G2", "frame B"]
     # The planes overlay the RGB: plane pixel (0, 0) of B sits at mosaic pixel (1, 1).
     assert tuple(viewer.layers["frame B"].data_to_world((0, 0))) == (1.0, 1.0)
+    assert len(shown) == 1
+
+
+@pytest.mark.gui
+def test_bayer_planes_from_the_file_menu(make_napari_viewer, dng_file, monkeypatch):
+    from qtpy.QtWidgets import QFileDialog
+
+    path, _ = dng_file
+    viewer = make_napari_viewer()
+    asked = []
+
+    def choose(parent, caption, folder, filters):
+        asked.append(filters)
+        return [str(path)], filters
+
+    monkeypatch.setattr(QFileDialog, "getOpenFileNames", staticmethod(choose))
+    _menu_action(viewer, "File", "IO Utilities", "Open camera raw as Bayer (CFA) planes...").trigger()
+    assert [layer.name for layer in viewer.layers] == ["frame R", "frame G1", "frame G2", "frame B"]
+    assert "*.cr2" in asked[0] and "*.nef" in asked[0] and "*.dng" in asked[0]
+
+
+@pytest.mark.gui
+def test_dropped_files_open_without_a_reader_dialog(make_napari_viewer, tmp_path, dng_file, monkeypatch):
+    """As ``dslrxr view`` sets napari up, opening .tif/.dcm/raw by drop or File > Open asks nothing."""
+    from napari._qt import qt_viewer as qt_viewer_module
+    from napari.plugins.utils import get_preferred_reader
+    from napari.settings import get_settings
+
+    from napari_dslrxr._cli.view import prefer_plugin_reader, restore_reader_preferences
+
+    viewer = make_napari_viewer()
+    dialogs = []
+    monkeypatch.setattr(qt_viewer_module, "handle_gui_reading", lambda paths, *a, **k: dialogs.append(list(paths)))
+    grey = np.arange(40 * 50, dtype=np.uint16).reshape(40, 50)
+    tif = write_tiff(tmp_path / "plain.tif", grey)
+    synthetic_files.write_dicom(tmp_path / "cr.dcm", grey, photometric="MONOCHROME1", bits_stored=12)
+    get_settings().plugins.extension2reader = {"*.tiff": "napari"}  # a choice the user made
+    # Without the preference napari's own reader competes for every one of these files.
+    viewer.window._qt_viewer._qt_open([str(tif)], stack=False)
+    assert len(dialogs) == 1 and len(viewer.layers) == 0
+    added = prefer_plugin_reader()
+    for name in ("a.tif", "b.dcm", "c.cr2", "d.nef", "e.dng", "F.CR2"):
+        assert get_preferred_reader(tmp_path / name) == "napari-dslrxr", name
+    assert get_preferred_reader(tmp_path / "x.tiff") == "napari"  # the user's choice is kept
+    paths = [tif, tmp_path / "cr.dcm", dng_file[0]]
+    for path in paths:
+        viewer.window._qt_viewer._qt_open([str(path)], stack=False)
+    assert len(dialogs) == 1, "a reader dialog was shown"
+    assert [layer.name for layer in viewer.layers] == ["plain", "cr", "frame"]
+    assert viewer.layers["cr"].metadata["input_kind"]["kind"] == "display"
+    restore_reader_preferences(added)
+    assert get_settings().plugins.extension2reader == {"*.tiff": "napari"}
 
 
 @pytest.mark.gui

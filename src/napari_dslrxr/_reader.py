@@ -1,10 +1,19 @@
-"""napari readers: camera raw (linear RGB, or the four CFA planes), DICOM and TIFF radiographs.
+"""napari reader: camera raw (linear RGB), DICOM and TIFF radiographs; the CFA planes on request.
 
 Thin adapters over :func:`napari_dslrxr.core.io.read_image`. ``get_reader`` only looks at the
 file name, returns ``None`` for anything it does not claim and never raises. The reader
 functions turn a core :class:`~napari_dslrxr.core.errors.DslrxrError` (corrupt file, wrong
 shape, NaN...) into a napari notification and skip that file, so a bad file never crashes the
 viewer.
+
+There is one reader per extension, so napari never asks which of this plugin's readers to use.
+The four Bayer (CFA) planes of a camera raw file are not a reader: :func:`read_cfa_planes` is
+called by the menu commands of :mod:`napari_dslrxr._cfa_planes` (and ``dslrxr view
+--cfa-planes``).
+
+Each layer's metadata holds the source file, its format, the format facts and the input kind
+(:func:`napari_dslrxr.core.input_kind.decide_input_kind`, under ``"input_kind"``), so the
+contrast widget treats a CR/DX DICOM as a display radiograph and a raw file as a camera frame.
 """
 
 from __future__ import annotations
@@ -14,6 +23,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from .core.errors import DslrxrError
+from .core.input_kind import input_kind_of
 from .core.io import DICOM_EXTENSIONS, RAW_EXTENSIONS, TIFF_EXTENSIONS, LoadedImage, read_image
 
 #: Extensions claimed by the main reader (raw files open as linear RGB).
@@ -58,14 +68,6 @@ def get_reader(path) -> ReaderFunction | None:
         return None
 
 
-def get_cfa_reader(path) -> ReaderFunction | None:
-    """Return the reader that opens camera raw files as their four CFA planes, or None."""
-    try:
-        return read_cfa_planes if _claims(_as_paths(path), frozenset(RAW_EXTENSIONS)) else None
-    except Exception:  # noqa: BLE001
-        return None
-
-
 def _notify_error(message: str) -> None:
     """Show a one-line error in napari (or warn when napari is not running)."""
     try:
@@ -90,7 +92,9 @@ def _load_each(path, **read_kwargs) -> list[LoadedImage]:
 
 
 def _layer_metadata(image: LoadedImage) -> dict:
-    return {"source_path": str(image.path), "format": image.format, "file_metadata": dict(image.metadata)}
+    kind = input_kind_of(image)
+    return {"source_path": str(image.path), "format": image.format, "file_metadata": dict(image.metadata),
+            "input_kind": kind.as_record()}
 
 
 def image_layer_tuple(image: LoadedImage) -> LayerDataTuple:
@@ -123,6 +127,9 @@ def read_radiographs(path) -> list[LayerDataTuple]:
 
 def read_cfa_planes(path) -> list[LayerDataTuple]:
     """Read camera raw files as four CFA plane layers each (R, G1, G2, B).
+
+    Not a reader contribution (one reader per extension avoids napari's reader dialog): the
+    menu commands of :mod:`napari_dslrxr._cfa_planes` call it.
 
     The planes are float32 counts above the black level. Each layer has scale 2 and is
     translated by its offset in the Bayer cell, so it overlays the demosaiced image in world

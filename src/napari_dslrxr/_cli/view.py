@@ -18,7 +18,6 @@ if TYPE_CHECKING:
 
 PLUGIN_NAME = "napari-dslrxr"
 READER_RGB = "napari-dslrxr.get_reader"
-READER_CFA = "napari-dslrxr.get_cfa_reader"
 
 
 def plugin_widget_names() -> list[str]:
@@ -49,7 +48,12 @@ def populate_viewer(viewer: napari.Viewer, files: list[Path], *, cfa_planes: boo
     right dock area so the canvas keeps its room, with the first one (impulse removal) in front.
     """
     for path in files:
-        viewer.open(str(path), plugin=READER_CFA if cfa_planes else READER_RGB)
+        if cfa_planes:
+            from .._cfa_planes import add_cfa_planes
+
+            add_cfa_planes(viewer, [str(path)])
+        else:
+            viewer.open(str(path), plugin=READER_RGB)
     docked, docks = [], []
     names = plugin_widget_names() if widgets is None else widgets
     for i, name in enumerate(names):
@@ -62,6 +66,53 @@ def populate_viewer(viewer: napari.Viewer, files: list[Path], *, cfa_planes: boo
         # The first stage's tab in front; deferred, as Qt lays the tabs out after this returns.
         QTimer.singleShot(0, docks[0].raise_)
     return docked
+
+
+def reader_patterns() -> list[str]:
+    """The file name patterns of the plugin's reader, as the manifest declares them."""
+    from npe2 import PluginManager
+
+    manager = PluginManager.instance()
+    manager.discover()
+    manifest = manager.get_manifest(PLUGIN_NAME)
+    return [pattern for reader in (manifest.contributions.readers or []) for pattern in reader.filename_patterns]
+
+
+def prefer_plugin_reader() -> dict[str, str]:
+    """Make napari open the plugin's file types with its reader, without asking.
+
+    napari's built-in reader claims every image extension too, so opening a file that two
+    plugins claim shows a "choose a reader" dialog. For each reader pattern the user has no
+    preference for (lower and upper case), this session prefers this plugin (as ticking
+    "remember" in that dialog would); patterns the user chose a reader for are left alone.
+
+    Returns
+    -------
+    dict
+        The preferences added; give them to :func:`restore_reader_preferences` when the viewer
+        closes, so the user's settings are as they were.
+    """
+    from napari.settings import get_settings
+
+    plugins = get_settings().plugins
+    before = dict(plugins.extension2reader)
+    # napari matches preferences case-sensitively; cameras often write upper-case names (IMG_1.CR2)
+    patterns = [p for pattern in reader_patterns() for p in (pattern.lower(), pattern.upper())]
+    added = {pattern: PLUGIN_NAME for pattern in patterns if pattern not in before}
+    if added:
+        plugins.extension2reader = {**before, **added}
+    return added
+
+
+def restore_reader_preferences(added: dict[str, str]) -> None:
+    """Remove the preferences :func:`prefer_plugin_reader` added (choices made since are kept)."""
+    from napari.settings import get_settings
+
+    plugins = get_settings().plugins
+    current = dict(plugins.extension2reader)
+    kept = {k: v for k, v in current.items() if not (k in added and v == added[k])}
+    if kept != current:
+        plugins.extension2reader = kept
 
 
 def register(app: typer.Typer) -> None:
@@ -81,6 +132,10 @@ def register(app: typer.Typer) -> None:
         except ImportError:
             raise DslrxrError("'dslrxr view' needs napari: pip install 'napari-dslrxr[napari]' "
                               "plus a Qt binding (e.g. PyQt6)") from None
-        viewer = napari.Viewer(title="dslrxr")
-        populate_viewer(viewer, files, cfa_planes=cfa_planes, widgets=[] if no_widgets else None)
-        napari.run()
+        added = prefer_plugin_reader()  # dropped .tif/.dcm/raw files open without a reader dialog
+        try:
+            viewer = napari.Viewer(title="dslrxr")
+            populate_viewer(viewer, files, cfa_planes=cfa_planes, widgets=[] if no_widgets else None)
+            napari.run()
+        finally:
+            restore_reader_preferences(added)
