@@ -32,6 +32,7 @@ import numpy as np
 from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, PushButton, create_widget
 
 from ..core.errors import ParameterError
+from ..core.input_kind import InputKind, decide_input_kind
 from ..core.params import PipelineParams
 from ..core.pipeline import apply_display_stages, process_frame, scale_display_radiograph
 from ._common import debounced, guarded, readout_label, run_in_worker, show_layer
@@ -120,6 +121,14 @@ def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: 
     return prepared, apply_display_stages(image, mask, params)
 
 
+def layer_input_kind(layer) -> InputKind:
+    """The input kind of a layer: the reader's decision in its metadata, else the core rule on its data."""
+    meta = layer.metadata or {}
+    if isinstance(meta.get("input_kind"), dict):
+        return InputKind.from_record(meta["input_kind"])
+    return decide_input_kind(meta.get("format"), meta.get("file_metadata"), np.asarray(layer.data))
+
+
 class ContrastWidget(Container):
     """Latitude, detail and bone-contrast sliders with a live preview, and a full-size apply."""
 
@@ -155,6 +164,7 @@ class ContrastWidget(Container):
         self._image.changed.connect(trigger)
         self._apply.changed.connect(self.run)
         register_stage_widget(viewer, self)
+        self._input_changed()  # the layer preselected at creation emits no change
 
     # -- parameters (TOML sections [dynamic_range] and [contrast]) ------------------------------
     def pipeline_params(self) -> PipelineParams:
@@ -177,9 +187,13 @@ class ContrastWidget(Container):
 
     # -- input -------------------------------------------------------------------------------------
     def _input_changed(self, *_args) -> None:
+        """Set the input kind by the core's rule whenever a layer is chosen (and at start)."""
         layer = self._image.value
-        if layer is not None and layer.metadata.get("format") == "dicom":
-            self._kind.value = DISPLAY
+        if layer is None:
+            return
+        kind = layer_input_kind(layer)
+        self._kind.value = DISPLAY if kind.kind == "display" else LINEAR
+        self._readout.value = f"input: {kind.kind} ({kind.evidence})" + ("" if kind.certain else "; a guess")
 
     def _layer(self) -> napari.layers.Image:
         layer = self._image.value

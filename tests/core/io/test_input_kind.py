@@ -43,8 +43,9 @@ def test_linear_dicom_and_camera_raw_are_camera_frames():
 def test_other_dicom_modality_follows_the_parameter_or_the_evidence():
     meta = _dicom_meta("OT", "MONOCHROME2")
     assert decide_input_kind("dicom", meta, None, "display").kind == DISPLAY
+    assert decide_input_kind("dicom", meta, None, "camera").kind == CAMERA
     guess = decide_input_kind("dicom", meta, np.zeros((16, 16), np.uint16))
-    assert guess.kind == CAMERA and not guess.certain
+    assert guess.kind == DISPLAY and not guess.certain and "OT" in guess.evidence
 
 
 def test_parameter_decides_for_tiff_and_png():

@@ -21,7 +21,8 @@ in the layer's metadata) and the contrast widget:
 4. with ``"auto"``, evidence in the file: a radiograph written by this package's own run, a
    colour frame with a tint (a photograph of a scintillator), an 8-bit grey image (display
    encoded), else a 16-bit or float grey image is taken as linear counts. Only the first two
-   are certain; the others are guesses, marked ``certain=False``, so callers say so.
+   are certain; the others are guesses, marked ``certain=False``, so callers say so. (A DICOM
+   that reaches this step is guessed to be a display radiograph, as nearly all are.)
 """
 
 from __future__ import annotations
@@ -162,6 +163,9 @@ def _evidence(file_format: str | None, metadata: Mapping, data: np.ndarray | Non
     what = {"tiff": "TIFF", "png": "PNG", "dicom": "DICOM"}.get(file_format or "", "image")
     if _own_output(metadata):
         return DISPLAY, True, f"{what} written by dslrxr run (display-ready)"
+    if file_format == "dicom":
+        modality = str(metadata.get("modality") or "no modality").strip() or "no modality"
+        return DISPLAY, False, f"DICOM ({modality}) without a linear-counts header, taken as a display radiograph"
     if data is None:
         return CAMERA, False, f"{what} with no pixel data to judge, linear counts assumed"
     arr = np.asarray(data)
