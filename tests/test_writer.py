@@ -116,3 +116,26 @@ def test_real_cr_dicom_round_trip(viewer, shared_data, tmp_path):
     # MONOCHROME1 inverted once on reading; saved as MONOCHROME2 with the same (bone-bright) values
     np.testing.assert_array_equal(pydicom.dcmread(out).pixel_array, top - original.pixel_array)
     assert _sidecar(out)["inputs"][0]["sha256"] == file_sha256(source)
+
+
+def test_saved_dicom_reads_back_as_the_kind_it_was(viewer, tmp_path):
+    """A camera frame saved as DICOM is marked linear (LIN) and reads back as a camera frame."""
+    from napari_dslrxr.core.input_kind import input_kind_of
+    from napari_dslrxr.core.io import read_image, write_tiff
+
+    counts = (np.arange(40 * 60, dtype=np.uint32).reshape(40, 60) % 3000 + 200).astype(np.uint16)
+    (frame,) = viewer.open(str(write_tiff(tmp_path / "counts.tif", counts)), plugin="napari-dslrxr")
+    assert frame.metadata["input_kind"]["kind"] == "camera"
+    result = viewer.add_image(np.linspace(0, 1, 40 * 60, dtype=np.float32).reshape(40, 60), name="result",
+                              contrast_limits=(0.0, 1.0))
+    kinds = {}
+    for layer in (frame, result):
+        viewer.layers.selection = {layer}
+        out = tmp_path / f"{layer.name}.dcm"
+        viewer.layers.save(str(out), selected=True)
+        kinds[layer.name] = input_kind_of(read_image(out))
+        assert _sidecar(out)["results"]["pixel_intensity_relationship"] == (
+            "LIN" if layer is frame else "LOG")
+    assert kinds["counts"].kind == "camera" and kinds["counts"].certain
+    assert kinds["result"].kind == "display" and kinds["result"].certain
+    np.testing.assert_array_equal(read_image(tmp_path / "counts.dcm").data, counts)

@@ -11,7 +11,9 @@ and how the layer's values were mapped to 16 bits.
 Values: ``uint16`` data is written unchanged; ``uint8`` is scaled by 257; other integers in
 0..65535 are written unchanged; anything else (float results, wider integers) is mapped
 through the layer's contrast limits (what the user sees) to 0..65535. A DICOM DX holds one
-grey image, so a colour layer is refused for DICOM (save it as TIFF).
+grey image, so a colour layer is refused for DICOM (save it as TIFF). A layer the reader marked
+as a camera frame is written with ``PixelIntensityRelationship = LIN`` (linear counts), any other
+as ``LOG`` (a display image), so the input-kind rule reads the file back as what it is.
 """
 
 from __future__ import annotations
@@ -112,6 +114,10 @@ def _write(path: str, data: Any, attributes: dict, fmt: str) -> list[str]:
     inputs, source = _source(attributes, out)
     spacing = _pixel_spacing_mm(attributes)
     name = str(attributes.get("name", out.stem))
+    # A layer the reader marked as a camera frame holds linear counts; say so in the DICOM, so
+    # reopening it (or dslrxr run on it) takes the camera path. Layers made in napari (results)
+    # are display images.
+    linear = (source.get("input_kind") or {}).get("kind") == "camera"
     if fmt == "dicom":
         if pixels.ndim != 2:
             raise OutputError(f"{out}: a DICOM DX holds one grey image; layer '{name}' is colour "
@@ -120,7 +126,7 @@ def _write(path: str, data: Any, attributes: dict, fmt: str) -> list[str]:
 
         seed = hashlib.sha256(pixels.tobytes() + name.encode() + params_to_toml(params, comments=False).encode())
         write_dicom_dx(out, pixels, uid_seed=seed.hexdigest(), pixel_spacing_mm=spacing, inputs=inputs,
-                       series_description=f"napari-dslrxr: {name}"[:64])
+                       series_description=f"napari-dslrxr: {name}"[:64], linear=linear)
     else:
         from .core.io import write_tiff
 
@@ -131,6 +137,8 @@ def _write(path: str, data: Any, attributes: dict, fmt: str) -> list[str]:
     results = {"layer": name, "shape": list(pixels.shape), "value_mapping": mapping, "source": source,
                "pixel_spacing_mm": list(spacing) if spacing else None,
                "format": "DICOM DX (For Presentation)" if fmt == "dicom" else "16-bit TIFF"}
+    if fmt == "dicom":
+        results["pixel_intensity_relationship"] = "LIN" if linear else "LOG"
     write_sidecar(out, stage="napari-save", parameters=params, inputs=inputs, results=results)
     return [str(out)]
 

@@ -40,7 +40,8 @@ def deterministic_uid(seed: str, role: str) -> str:
 def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
                    pixel_spacing_mm: float | tuple[float, float] | None = None,
                    window: tuple[float, float] | None = None, patient: Mapping[str, str] | None = None,
-                   series_description: str = "", inputs: Iterable[str | os.PathLike] = ()) -> Path:
+                   series_description: str = "", inputs: Iterable[str | os.PathLike] = (),
+                   linear: bool = False) -> Path:
     """Write a uint16 grey radiograph as a DICOM DX (For Presentation) file.
 
     Parameters
@@ -60,6 +61,10 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     series_description : str
     inputs : iterable of path-like
         Files the output must not overwrite.
+    linear : bool
+        The values are linear in light (camera counts): PixelIntensityRelationship ``LIN``
+        instead of ``LOG``, so a reader takes the file for a camera frame, not a display
+        radiograph.
 
     Returns
     -------
@@ -130,7 +135,7 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     ds.BitsStored = 16
     ds.HighBit = 15
     ds.PixelRepresentation = 0
-    ds.PixelIntensityRelationship = "LOG"
+    ds.PixelIntensityRelationship = "LIN" if linear else "LOG"
     ds.PixelIntensityRelationshipSign = 1
     ds.RescaleIntercept = 0
     ds.RescaleSlope = 1
