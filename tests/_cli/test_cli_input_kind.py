@@ -165,3 +165,24 @@ def test_display_radiograph_reruns_follow_parameters_and_references(tmp_path):
     flat.write_bytes(write_tiff(tmp_path / "flat2.tif", np.full((96, 128), 900, np.uint16)).read_bytes())
     new_flat = dslrxr("run", str(source), "--flat", str(flat), "-o", out, "-c", str(cfg))
     assert "redoing" in new_flat.stderr and "flat" in new_flat.stderr, new_flat.stderr
+
+
+def test_display_radiograph_with_a_flat_says_the_flat_was_not_applied(tmp_path):
+    from robustness import synthetic_files
+
+    yy, xx = np.mgrid[:96, :128]
+    display = (1500 + 1500 * np.exp(-((xx - 64) / 12.0) ** 2) + 4 * yy).astype(np.uint16)  # bone band bright
+    source = synthetic_files.write_dicom(tmp_path / "cr.dcm", 4095 - display, photometric="MONOCHROME1",
+                                         bits_stored=12)
+    flat = write_tiff(tmp_path / "flat.tif", np.full((96, 128), 1000, np.uint16))
+    cfg = tmp_path / "as_captured.toml"
+    cfg.write_text('[output]\npolarity = "as_captured"\n')
+    result = dslrxr("run", str(source), "--flat", str(flat), "-o", str(tmp_path / "bone"))
+    flipped = dslrxr("run", str(source), "-c", str(cfg), "-o", str(tmp_path / "flipped"))
+    assert result.returncode == 0 and flipped.returncode == 0, result.stderr + flipped.stderr
+    lines = [ln for ln in result.stderr.splitlines() if "not applied" in ln]
+    assert len(lines) == 1 and "cr.dcm" in lines[0] and "flat" in lines[0]
+    bone = read_image(tmp_path / "bone" / "cr_dslrxr.tif").data.astype(np.float64)
+    as_captured = read_image(tmp_path / "flipped" / "cr_dslrxr.tif").data.astype(np.float64)
+    assert np.corrcoef(display.ravel(), bone.ravel())[0, 1] > 0.85  # bone white by default
+    assert np.corrcoef(display.ravel(), as_captured.ravel())[0, 1] < -0.85  # more exposure brighter
