@@ -211,3 +211,14 @@ def test_viewer_survives_a_corrupt_file(make_napari_viewer, tmp_path):
     viewer = make_napari_viewer()
     viewer.open(str(bad), plugin="napari-dslrxr")
     assert len(viewer.layers) == 0
+
+
+@pytest.mark.gui
+def test_view_cfa_planes_option_shows_the_planes(make_napari_viewer, dng_file):
+    from napari_dslrxr._cli.view import populate_viewer
+
+    path, mosaic = dng_file
+    viewer = make_napari_viewer()
+    populate_viewer(viewer, [path], cfa_planes=True, widgets=[])
+    assert [layer.name for layer in viewer.layers] == ["frame R", "frame G1", "frame G2", "frame B"]
+    np.testing.assert_array_equal(viewer.layers["frame B"].data, mosaic[1::2, 1::2].astype(np.float32) - BLACK_COUNTS)
