@@ -374,8 +374,8 @@ def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
     image : ndarray, (H, W)
         Grey radiograph (any real dtype), higher = brighter on display.
     params : PipelineParams, optional
-        Uses ``region`` (VOI percentiles, collimation), ``dynamic_range``, ``contrast`` and
-        ``output.outside_region``.
+        Uses ``region`` (VOI percentiles, collimation), ``dynamic_range``, ``contrast``,
+        ``output.outside_region`` and ``output.polarity`` (as :func:`run_display_pipeline`).
     mask : ndarray, bool, optional
         Region of interest for the statistics (pixels outside are processed, not filled);
         default: the detected collimated field, see :func:`scale_display_radiograph`.
