@@ -93,7 +93,7 @@ class InputKind:
         if not self.certain:
             other = DISPLAY if self.kind == CAMERA else CAMERA
             return (f"input kind not certain, guessed {self.kind} ({self.evidence}); "
-                    f"set [input] input_kind = \"{other}\" if it is {_describe(other)}")
+                    f"if wrong, set [input] input_kind = \"{other}\"")
         return None
 
     def as_record(self) -> dict:
@@ -106,10 +106,6 @@ class InputKind:
         return cls(kind=str(record["kind"]), certain=bool(record.get("certain", False)),
                    evidence=str(record.get("evidence", "")), requested=str(record.get("requested", AUTO)),
                    overridden=bool(record.get("overridden", False)))
-
-
-def _describe(kind: str) -> str:
-    return "a camera frame (linear counts)" if kind == CAMERA else "a display radiograph (bone bright)"
 
 
 def check_input_kind(requested: str) -> str:
@@ -165,7 +161,7 @@ def _evidence(file_format: str | None, metadata: Mapping, data: np.ndarray | Non
         return DISPLAY, True, f"{what} written by dslrxr run (display-ready)"
     if file_format == "dicom":
         modality = str(metadata.get("modality") or "no modality").strip() or "no modality"
-        return DISPLAY, False, f"DICOM ({modality}) without a linear-counts header, taken as a display radiograph"
+        return DISPLAY, False, f"DICOM ({modality}), no LIN header: display radiograph assumed"
     if data is None:
         return CAMERA, False, f"{what} with no pixel data to judge, linear counts assumed"
     arr = np.asarray(data)
@@ -179,7 +175,7 @@ def _evidence(file_format: str | None, metadata: Mapping, data: np.ndarray | Non
     if arr.dtype == np.uint8:
         return DISPLAY, False, f"8-bit {grey} {what}: display-encoded, not linear counts"
     depth = "16-bit" if arr.dtype == np.uint16 else f"{arr.dtype}"
-    return CAMERA, False, f"{depth} {grey} {what} without a radiograph header, linear counts assumed"
+    return CAMERA, False, f"{depth} {grey} {what}, no radiograph header: linear counts assumed"
 
 
 def decide_input_kind(file_format: str | None = None, metadata: Mapping | None = None,
