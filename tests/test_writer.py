@@ -136,6 +136,11 @@ def test_saved_dicom_reads_back_as_the_kind_it_was(viewer, tmp_path):
         kinds[layer.name] = input_kind_of(read_image(out))
         assert _sidecar(out)["results"]["pixel_intensity_relationship"] == (
             "LIN" if layer is frame else "LOG")
-    assert kinds["counts"].kind == "camera" and kinds["counts"].certain
-    assert kinds["result"].kind == "display" and kinds["result"].certain
+        tif = tmp_path / f"{layer.name}_saved.tif"
+        viewer.layers.save(str(tif), selected=True, plugin="napari-dslrxr")
+        kinds[f"{layer.name} tif"] = input_kind_of(read_image(tif))
+    for name in ("counts", "counts tif"):
+        assert kinds[name].kind == "camera" and kinds[name].certain, kinds[name]
+    for name in ("result", "result tif"):
+        assert kinds[name].kind == "display" and kinds[name].certain, kinds[name]
     np.testing.assert_array_equal(read_image(tmp_path / "counts.dcm").data, counts)

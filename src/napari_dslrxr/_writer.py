@@ -13,7 +13,8 @@ Values: ``uint16`` data is written unchanged; ``uint8`` is scaled by 257; other 
 through the layer's contrast limits (what the user sees) to 0..65535. A DICOM DX holds one
 grey image, so a colour layer is refused for DICOM (save it as TIFF). A layer the reader marked
 as a camera frame is written with ``PixelIntensityRelationship = LIN`` (linear counts), any other
-as ``LOG`` (a display image), so the input-kind rule reads the file back as what it is.
+as ``LOG`` (a display image); a TIFF's description records the same (``input_kind``), so the
+input-kind rule reads either file back as what it is.
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ def _write(path: str, data: Any, attributes: dict, fmt: str) -> list[str]:
         from .core.io import write_tiff
 
         description = json.dumps({"software": "napari-dslrxr", "version": __version__, "stage": "napari-save",
-                                  "layer": name}, sort_keys=True)
+                                  "layer": name, "input_kind": "camera" if linear else "display"}, sort_keys=True)
         write_tiff(out, pixels, description=description, inputs=inputs,
                    resolution_px_per_mm=(1.0 / spacing[1]) if spacing else None)
     results = {"layer": name, "shape": list(pixels.shape), "value_mapping": mapping, "source": source,

@@ -18,8 +18,8 @@ in the layer's metadata) and the contrast widget:
    with a MONOCHROME1/2 image is a display radiograph;
 3. otherwise (TIFF, PNG, arrays, other DICOMs) the parameter ``[input] input_kind`` decides
    when it is ``"camera"`` or ``"display"``;
-4. with ``"auto"``, evidence in the file: a radiograph written by this package's own run, a
-   colour frame with a tint (a photograph of a scintillator), an 8-bit grey image (display
+4. with ``"auto"``, evidence in the file: a TIFF written by this package (its description
+   says what it holds: ``dslrxr run`` output is display-ready), a colour frame with a tint (a photograph of a scintillator), an 8-bit grey image (display
    encoded), else a 16-bit or float grey image is taken as linear counts. Only the first two
    are certain; the others are guesses, marked ``certain=False``, so callers say so. (A DICOM
    that reaches this step is guessed to be a display radiograph, as nearly all are.)
@@ -131,16 +131,21 @@ def _header_decision(file_format: str | None, metadata: Mapping) -> tuple[str, s
     return None
 
 
-def _own_output(metadata: Mapping) -> bool:
-    """True for a TIFF written by ``dslrxr run`` (display-ready; its description says so)."""
+def _own_output(metadata: Mapping) -> str | None:
+    """The kind a TIFF written by this package declares: ``dslrxr run`` output is display-ready;
+    a layer saved from napari records ``input_kind``. None for any other file."""
     text = metadata.get("description")
     if not isinstance(text, str) or not text.lstrip().startswith("{"):
-        return False
+        return None
     try:
         record = json.loads(text)
     except (ValueError, RecursionError):
-        return False
-    return isinstance(record, dict) and record.get("software") == "napari-dslrxr" and record.get("stage") == "run"
+        return None
+    if not isinstance(record, dict) or record.get("software") != "napari-dslrxr":
+        return None
+    if record.get("stage") == "run":
+        return DISPLAY
+    return record.get("input_kind") if record.get("input_kind") in (CAMERA, DISPLAY) else None
 
 
 def _tint(data: np.ndarray) -> float:
@@ -157,8 +162,9 @@ def _tint(data: np.ndarray) -> float:
 def _evidence(file_format: str | None, metadata: Mapping, data: np.ndarray | None) -> tuple[str, bool, str]:
     """(kind, certain, evidence) from the content, for ``input_kind = "auto"``."""
     what = {"tiff": "TIFF", "png": "PNG", "dicom": "DICOM"}.get(file_format or "", "image")
-    if _own_output(metadata):
-        return DISPLAY, True, f"{what} written by dslrxr run (display-ready)"
+    own = _own_output(metadata)
+    if own is not None:
+        return own, True, f"{what} written by napari-dslrxr as {'a display radiograph' if own == DISPLAY else 'linear counts'}"
     if file_format == "dicom":
         modality = str(metadata.get("modality") or "no modality").strip() or "no modality"
         return DISPLAY, False, f"DICOM ({modality}), no LIN header: display radiograph assumed"
