@@ -120,7 +120,7 @@ def test_real_cr_dicom_round_trip(viewer, shared_data, tmp_path):
 
 def test_saved_dicom_reads_back_as_the_kind_it_was(viewer, tmp_path):
     """A camera frame saved as DICOM is marked linear (LIN) and reads back as a camera frame."""
-    from napari_dslrxr.core.input_kind import input_kind_of
+    from napari_dslrxr.core.io.input_kind import input_kind_of
     from napari_dslrxr.core.io import read_image, write_tiff
 
     counts = (np.arange(40 * 60, dtype=np.uint32).reshape(40, 60) % 3000 + 200).astype(np.uint16)

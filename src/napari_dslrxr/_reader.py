@@ -12,7 +12,7 @@ called by the menu commands of :mod:`napari_dslrxr._cfa_planes` (and ``dslrxr vi
 --cfa-planes``).
 
 Each layer's metadata holds the source file, its format, the format facts and the input kind
-(:func:`napari_dslrxr.core.input_kind.decide_input_kind`, under ``"input_kind"``), so the
+(:func:`napari_dslrxr.core.io.input_kind.decide_input_kind`, under ``"input_kind"``), so the
 contrast widget treats a CR/DX DICOM as a display radiograph and a raw file as a camera frame.
 """
 
@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from .core.errors import DslrxrError
-from .core.input_kind import input_kind_of
+from .core.io.input_kind import input_kind_of
 from .core.io import DICOM_EXTENSIONS, RAW_EXTENSIONS, TIFF_EXTENSIONS, LoadedImage, read_image
 
 #: Extensions claimed by the main reader (raw files open as linear RGB).

@@ -1,8 +1,8 @@
 """napari writers: an image layer as a DICOM DX radiograph or a 16-bit TIFF, each with its sidecar.
 
-Thin adapters over the core writers (:func:`napari_dslrxr.core.dicom.write_dicom_dx`,
+Thin adapters over the core writers (:func:`napari_dslrxr.core.io.dicom.write_dicom_dx`,
 :func:`napari_dslrxr.core.io.write_tiff`) and the core provenance
-(:func:`napari_dslrxr.core.provenance.write_sidecar`), so a result tuned in napari is exported
+(:func:`napari_dslrxr.core.io.provenance.write_sidecar`), so a result tuned in napari is exported
 as ``dslrxr run`` would export it: the JSON sidecar ``<file>.json`` records the package version,
 the pipeline parameters of the stage widgets docked in the viewer (the defaults for sections
 without a widget), the checksum of the layer's source file when the layer was opened from one,
@@ -107,7 +107,7 @@ def _source(attributes: dict, out: Path) -> tuple[list[Path], dict]:
 
 def _write(path: str, data: Any, attributes: dict, fmt: str) -> list[str]:
     from . import __version__
-    from .core.provenance import write_sidecar
+    from .core.io.provenance import write_sidecar
 
     out = Path(path)
     pixels, mapping = layer_to_uint16(data, attributes, out)
@@ -123,7 +123,7 @@ def _write(path: str, data: Any, attributes: dict, fmt: str) -> list[str]:
         if pixels.ndim != 2:
             raise OutputError(f"{out}: a DICOM DX holds one grey image; layer '{name}' is colour "
                               "(save it as TIFF)")
-        from .core.dicom import write_dicom_dx
+        from .core.io.dicom import write_dicom_dx
 
         seed = hashlib.sha256(pixels.tobytes() + name.encode() + params_to_toml(params, comments=False).encode())
         write_dicom_dx(out, pixels, uid_seed=seed.hexdigest(), pixel_spacing_mm=spacing, inputs=inputs,

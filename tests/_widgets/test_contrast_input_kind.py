@@ -7,7 +7,7 @@ import pytest
 from robustness import synthetic_files
 
 from napari_dslrxr._widgets.contrast import DISPLAY, LINEAR, ContrastWidget
-from napari_dslrxr.core.phantom import make_dslr_radiograph
+from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 
 pytestmark = pytest.mark.gui
 

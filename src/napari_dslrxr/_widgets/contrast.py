@@ -32,7 +32,7 @@ import numpy as np
 from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, PushButton, create_widget
 
 from ..core.errors import ParameterError
-from ..core.input_kind import InputKind, decide_input_kind
+from ..core.io.input_kind import InputKind, decide_input_kind
 from ..core.params import PipelineParams
 from ..core.pipeline import apply_display_stages, process_frame, scale_display_radiograph
 from ._common import debounced, guarded, readout_label, run_in_worker, show_layer

@@ -29,8 +29,8 @@ from ._lazy import lazy_exports
 #: Public names, by the module that defines them (imported on first use).
 _PUBLIC: dict[str, tuple[str, ...]] = {
     "errors": ("DslrxrError", "InputError", "OutputError", "ParameterError"),
-    "io": ("LoadedImage", "RawFrame", "atomic_write", "read_image", "read_raw", "sidecar_path",
-        "validate_image", "write_dicom_dx", "write_png", "write_sidecar", "write_tiff"),
+    "io": ("LoadedImage", "RawFrame", "atomic_write", "decide_input_kind", "read_image", "read_raw",
+        "sidecar_path", "validate_image", "write_dicom_dx", "write_png", "write_sidecar", "write_tiff"),
     "stages": ("ContrastParams", "DeconvolutionParams", "DynamicRangeParams", "FlatFieldParams",
         "FlatReference", "ImpulseParams", "ImpulseResult", "Region", "RegionParams", "apply_flat_field",
         "deconvolve", "detect_collimation", "detect_screen", "enhance_contrast", "prepare_flat_reference",
@@ -44,7 +44,8 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "params": ("BatchParams", "DeblurParams", "OutputParams", "PipelineParams", "default_params_toml", "load_params",
         "params_from_dict", "params_to_dict", "params_to_toml", "save_params", "validate_params"),
     "pipeline": ("PIPELINE_STAGES", "PipelineResult", "apply_display_stages", "enhance_radiograph",
-        "prepare_batch_references", "process_frame", "run_file", "run_pipeline", "scale_display_radiograph"),
+        "prepare_batch_references", "process_display_radiograph", "process_frame", "run_display_pipeline",
+        "run_file", "run_pipeline", "scale_display_radiograph"),
     "rerun": ("RerunCheck", "check_finished"),
 }
 
