@@ -8,6 +8,10 @@ after it (save psf.json, write and open the report) and Cancel while a job runs.
 enumerated from the Qt widget tree, so a new button fails :func:`check_all_clicked` until a
 test clicks it. Every click is timed with an event-loop heartbeat: the GUI thread must never
 be blocked for more than :data:`MAX_BLOCK_S` while a job runs.
+
+The README screenshots are taken on this path, after the clicks: into ``docs/screenshots/``
+with ``DSLRXR_UPDATE_SCREENSHOTS=1``, else into a temporary folder (an ordinary run leaves the
+working tree clean).
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ LOAD_AT_START = os.getloadavg()[0] / (os.cpu_count() or 1)
 #: while the job computed in its worker, and showing the result. Printed by the last test.
 GAPS: dict[tuple[str, str], dict[str, float]] = {}
 SAMPLE_KEYS = ("radiograph", "flat", "dark", "dslr_set", "edges", "scene")
+DOCS_SHOTS = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
 
 
 class Plugin:
@@ -114,6 +119,44 @@ class Plugin:
         self.clicked[widget_name].add(text)
         return self.check_notifications(f"{widget_name}: '{text}'", refused)
 
+    def snap(self, folder: Path, name: str, widget_name: str, visible: list[str], *,
+             center: tuple[float, float] | None = None, zoom: float | None = None) -> Path:
+        """Only the ``visible`` layers shown, the widget's tab in front, the whole window
+        saved at 1300x800; the canvas must show something (black = broken GL)."""
+        from qtpy.QtWidgets import QApplication
+
+        from napari_dslrxr._widgets._common import viewer_camera
+
+        viewer = self.viewer
+        for layer in viewer.layers:
+            layer.visible = layer.name in visible
+        viewer.layers.selection.active = viewer.layers[visible[-1]]
+        self.show(widget_name)
+        viewer.window.resize(1300, 800)
+        for _ in range(5):
+            QApplication.processEvents()
+        # Frame the shown layers (napari's reset_view frames hidden ones too).
+        extents = np.array([viewer.layers[n].extent.world[:, -2:] for n in visible])
+        lo, hi = extents[:, 0].min(axis=0), extents[:, 1].max(axis=0)
+        canvas_h, canvas_w = viewer.canvas.size
+        camera = viewer_camera(viewer)
+        camera.center = (0, *(center if center is not None else (lo + hi) / 2))
+        camera.zoom = zoom if zoom is not None else 0.9 * min(canvas_h / max(hi[0] - lo[0], 1e-9),
+                                                              canvas_w / max(hi[1] - lo[1], 1e-9))
+        # No notification toast over the canvas.
+        from napari._qt.dialogs.qt_notification import NapariQtNotification
+
+        for toast in viewer.window._qt_window.findChildren(NapariQtNotification):
+            toast.close()
+        self.qtbot.wait(50)
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"{name}.png"
+        window = viewer.screenshot(str(path), canvas_only=False, flash=False)
+        canvas = viewer.screenshot(canvas_only=True, flash=False)
+        assert window.shape[0] >= 700 and window.shape[1] >= 1200
+        assert canvas[..., :3].mean() > 5, "canvas rendered black (GL under the virtual display?)"
+        return path
+
     def check_notifications(self, what: str, refused: str | None = None) -> list[str]:
         new = notification_manager.records[self._seen:]
         self._seen = len(notification_manager.records)
@@ -131,7 +174,14 @@ class Plugin:
 
 
 @pytest.fixture
-def plugin(make_napari_viewer, qtbot):
+def shots(tmp_path) -> Path:
+    """Where screenshots go: the README's folder only when asked to refresh it."""
+    return DOCS_SHOTS if os.environ.get("DSLRXR_UPDATE_SCREENSHOTS") == "1" else tmp_path / "screenshots"
+
+
+@pytest.fixture
+def plugin(make_napari_viewer, qtbot, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # files chosen by name land here (and short names show in pictures)
     viewer = make_napari_viewer(show=True)
     return Plugin(viewer, qtbot)
 
@@ -183,7 +233,7 @@ def answer_file_dialog(file_edit, path) -> None:
 # --------------------------------------------------------------------------- the plugin
 
 
-def test_dslrxr_view_docks_every_widget_and_no_preview_appears(plugin):
+def test_dslrxr_view_docks_every_widget_and_no_preview_appears(plugin, shots):
     """Opening the plugin and every sample computes nothing and adds no preview layer."""
     assert set(plugin.widgets) == set(plugin_widget_names()) and len(plugin.widgets) == 7
     plugin.qtbot.wait(300)  # longer than any preview debounce
@@ -191,9 +241,10 @@ def test_dslrxr_view_docks_every_widget_and_no_preview_appears(plugin):
     assert not [n for n in names if "preview" in n or "contrast" in n], names
     assert "DSLR radiograph" in names and "edge SOD 500 mm" in names and "simulated recording" in names
     plugin.check_notifications("opening the samples")
+    plugin.snap(shots, "all_widgets", "Impulse removal", ["DSLR radiograph"])
 
 
-def test_impulse_removal_buttons(plugin, monkeypatch):
+def test_impulse_removal_buttons(plugin, monkeypatch, shots):
     name, widget = "Impulse removal", plugin.widgets["Impulse removal"]
     widget._image.value = plugin.viewer.layers["DSLR radiograph"]
     widget._passes["H"].value = 5
@@ -206,6 +257,9 @@ def test_impulse_removal_buttons(plugin, monkeypatch):
     assert "DSLR radiograph cleaned" in plugin.viewer.layers
     assert "px replaced" in widget._readout.value and "done in" in widget._job.status.value
     plugin.check_all_clicked(name)
+    plugin.snap(shots, "impulse", name, ["DSLR radiograph cleaned", "DSLR radiograph pulses H",
+                                         "DSLR radiograph pulses S", "DSLR radiograph pulses V"],
+                center=(200, 330), zoom=3.0)
 
 
 def test_flat_field_buttons(plugin, monkeypatch, tmp_path):
@@ -216,8 +270,10 @@ def test_flat_field_buttons(plugin, monkeypatch, tmp_path):
     plugin.click(name, "Apply flat field", refused="choose a flat")
     # Flat and dark from files, through their pickers.
     frames = samples._phantom()
-    answer_file_dialog(widget._flat_file, write_tiff(tmp_path / "flat.tif", frames.flat))
-    answer_file_dialog(widget._dark_file, write_tiff(tmp_path / "dark.tif", frames.dark))
+    write_tiff(tmp_path / "flat.tif", frames.flat)
+    write_tiff(tmp_path / "dark.tif", frames.dark)
+    answer_file_dialog(widget._flat_file, "flat.tif")
+    answer_file_dialog(widget._dark_file, "dark.tif")
     plugin.click(name, "Select file")
     plugin.click(name, "Select file #2")
     assert widget._flat.value is layers["flat: flat"] and widget._dark.value is layers["dark: dark"]
@@ -236,7 +292,7 @@ def rectangle(r0, c0, r1, c1):
     return np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float)
 
 
-def test_psf_from_edges_buttons(plugin, tmp_path):
+def test_psf_from_edges_buttons(plugin, tmp_path, shots):
     name, widget = "PSF from edges", plugin.widgets["PSF from edges"]
     viewer = plugin.viewer
     near, far = viewer.layers["edge SOD 500 mm"], viewer.layers["edge SOD 900 mm"]
@@ -276,14 +332,15 @@ def test_psf_from_edges_buttons(plugin, tmp_path):
     assert "focal spot FWHM x, y: 0.4" in widget._readout.value or "focal spot FWHM x, y: 0.3" in widget._readout.value
     assert widget.model.fit_report["n_images"] == 3
     # Save psf.json, enabled by the fit; the path chosen through the picker.
-    answer_file_dialog(widget._path, tmp_path / "psf.json")
+    answer_file_dialog(widget._path, "psf.json")
     plugin.click(name, "Select file")
     plugin.click(name, "Save psf.json")
     assert load_psf(tmp_path / "psf.json").source_fwhm_x_mm == pytest.approx(widget.model.source_fwhm_x_mm)
     plugin.check_all_clicked(name)
+    plugin.snap(shots, "psf_edges", name, ["edge SOD 900 mm", "edge SOD 900 mm ROIs", "PSF kernel"])
 
 
-def test_deconvolution_buttons(plugin, monkeypatch, tmp_path):
+def test_deconvolution_buttons(plugin, monkeypatch, tmp_path, shots):
     name, widget = "Deconvolution", plugin.widgets["Deconvolution"]
     viewer = plugin.viewer
     image = viewer.layers["edge SOD 900 mm"]
@@ -292,15 +349,24 @@ def test_deconvolution_buttons(plugin, monkeypatch, tmp_path):
     plugin.click(name, "Estimate regularisation", refused="choose a kernel layer or a psf.json")
     plugin.click(name, "Apply to the whole image", refused="choose a kernel layer or a psf.json")
     assert widget._readout.value.startswith("not done:")
-    psf = save_psf(PSFModel(**samples.EDGE_TRUTH), tmp_path / "psf.json")
-    answer_file_dialog(widget._psf_file, psf)
+    save_psf(PSFModel(**samples.EDGE_TRUTH), tmp_path / "psf.json")
+    answer_file_dialog(widget._psf_file, "psf.json")
     plugin.click(name, "Select file")
     widget._sod.value, widget._sdd.value = 900.0, 1000.0
-    plugin.click(name, "Estimate regularisation")
-    assert widget._readout.value.startswith("estimated regularisation")
     widget._method.value = "wiener"
     plugin.click(name, "Restore defaults")
     assert widget._method.value == "adaptive" and widget._reg.value == pytest.approx(100.0, rel=0.02)
+    plugin.click(name, "Estimate regularisation")
+    assert widget._readout.value.startswith("estimated regularisation")
+    assert widget._reg.value != pytest.approx(100.0, rel=0.02)
+    # The live preview appears only when switched on, and goes when switched off.
+    preview = "edge SOD 900 mm deconvolved (preview)"
+    assert preview not in viewer.layers
+    widget._live.value = True
+    plugin.qtbot.waitUntil(lambda: preview in viewer.layers, timeout=20_000)
+    widget._live.value = False
+    assert preview not in viewer.layers
+    plugin.check_notifications("deconvolution preview")
     release = gate(deconvolution_module, "deconvolve_steps", monkeypatch)
     cancel_running(plugin, name, "Apply to the whole image", "Cancel", release, "edge SOD 900 mm deconvolved")
     monkeypatch.undo()
@@ -310,14 +376,9 @@ def test_deconvolution_buttons(plugin, monkeypatch, tmp_path):
     lo, hi = np.percentile(result.data, [0.5, 99.5])
     assert result.contrast_limits == pytest.approx([lo, hi], rel=1e-3)
     assert "values" in widget._readout.value and "(input" in widget._readout.value
-    # The live preview appears only when switched on, and goes when switched off.
-    assert "edge SOD 900 mm deconvolved (preview)" not in viewer.layers
-    widget._live.value = True
-    plugin.qtbot.waitUntil(lambda: "edge SOD 900 mm deconvolved (preview)" in viewer.layers, timeout=20_000)
-    widget._live.value = False
-    assert "edge SOD 900 mm deconvolved (preview)" not in viewer.layers
-    plugin.check_notifications("deconvolution preview")
     plugin.check_all_clicked(name)
+    result.translate = (0, 270)  # beside its input, for the picture
+    plugin.snap(shots, "deconvolution", name, ["edge SOD 900 mm", "edge SOD 900 mm deconvolved"])
 
 
 def test_contrast_buttons(plugin, monkeypatch):
@@ -342,7 +403,7 @@ def test_contrast_buttons(plugin, monkeypatch):
     plugin.check_all_clicked(name)
 
 
-def test_diagnosis_buttons(plugin, tmp_path, monkeypatch):
+def test_diagnosis_buttons(plugin, tmp_path, monkeypatch, shots):
     name, widget = "Diagnosis", plugin.widgets["Diagnosis"]
     viewer = plugin.viewer
     offered = [layer.name for layer in widget._recording.choices]
@@ -361,7 +422,7 @@ def test_diagnosis_buttons(plugin, tmp_path, monkeypatch):
     assert "veiling_glare" in widget._readout.value
     before, after = viewer.layers["residual z 4x4 (base model)"], viewer.layers["residual z 4x4 (final model)"]
     assert before.visible and after.visible and after.translate[1] > before.translate[1]
-    answer_file_dialog(widget._report_dir, tmp_path / "report")
+    answer_file_dialog(widget._report_dir, "report")
     plugin.click(name, "Choose directory")
     plugin.click(name, "Write report")
     html = unescape((tmp_path / "report" / "report.html").read_text(encoding="utf-8"))
@@ -371,13 +432,15 @@ def test_diagnosis_buttons(plugin, tmp_path, monkeypatch):
     plugin.click(name, "Open report")
     assert opened == [(tmp_path / "report" / "report.html").resolve().as_uri()]
     plugin.check_all_clicked(name)
+    plugin.snap(shots, "diagnosis", name, ["residual z 4x4 (base model)", "residual z 4x4 (final model)",
+                                           "mismatch regions", "residual map labels"])
 
 
 def test_parameter_file_buttons(plugin, tmp_path):
     name, widget = "Parameter file", plugin.widgets["Parameter file"]
     contrast = plugin.widgets["Contrast"]
     path = tmp_path / "params.toml"
-    answer_file_dialog(widget._path, path)
+    answer_file_dialog(widget._path, "params.toml")
     plugin.click(name, "Select file")
     plugin.click(name, "Load", refused="params.toml")
     contrast._sliders[("contrast", "bone_contrast")].value = 2.5
@@ -388,6 +451,40 @@ def test_parameter_file_buttons(plugin, tmp_path):
     plugin.click(name, "Load")
     assert contrast.pipeline_params().contrast.bone_contrast == 2.5
     plugin.check_all_clicked(name)
+
+
+def test_paper_pipeline_by_mouse_alone(plugin, shots):
+    """impulse -> flat -> PSF from edges -> deconvolution -> contrast, each step on the previous
+    step's layer, by clicks only (layer choices are the combo boxes a user sets)."""
+    viewer, w = plugin.viewer, plugin.widgets
+    w["Impulse removal"]._image.value = viewer.layers["DSLR radiograph"]
+    plugin.click("Impulse removal", "Remove impulses")
+    flat = w["Flat field"]
+    flat._image.value = viewer.layers["DSLR radiograph cleaned"]
+    flat._flat.value, flat._dark.value = viewer.layers["flat"], viewer.layers["dark"]
+    plugin.click("Flat field", "Apply flat field")
+    flat_fielded = viewer.layers["DSLR radiograph cleaned flat-fielded"]
+    psf = w["PSF from edges"]
+    for name, roi in (("edge SOD 500 mm", rectangle(32, 32, 96, 96)), ("edge SOD 900 mm", rectangle(32, 160, 96, 224))):
+        psf._image.value = viewer.layers[name]
+        plugin.click("PSF from edges", "Draw ROIs on this image")
+        viewer.layers[f"{name} ROIs"].add_rectangles([roi])
+    plugin.click("PSF from edges", "Fit PSF", timeout_ms=120_000)
+    assert "focal spot FWHM" in psf._readout.value
+    deconvolution = w["Deconvolution"]
+    deconvolution._image.value = flat_fielded
+    deconvolution._kernel_layer.value = viewer.layers["PSF kernel"]
+    plugin.click("Deconvolution", "Estimate regularisation")
+    plugin.click("Deconvolution", "Apply to the whole image")
+    deblurred = viewer.layers["DSLR radiograph cleaned flat-fielded deconvolved"]
+    assert deblurred.data.shape == flat_fielded.data.shape
+    contrast = w["Contrast"]
+    contrast._image.value = deblurred
+    plugin.click("Contrast", "Apply at full resolution")
+    final = viewer.layers["DSLR radiograph cleaned flat-fielded deconvolved contrast"]
+    assert final.data.shape == samples.PHANTOM_SHAPE and 0.0 <= final.data.min() < final.data.max() <= 1.0
+    plugin.snap(shots, "flatfield", "Flat field", ["DSLR radiograph cleaned flat-fielded"])
+    plugin.snap(shots, "contrast", "Contrast", ["DSLR radiograph cleaned flat-fielded deconvolved contrast"])
 
 
 def test_ui_never_blocked_over_100_ms_while_a_job_runs():

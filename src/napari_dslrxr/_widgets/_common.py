@@ -118,14 +118,18 @@ class JobPanel:
 
     def __init__(self, cancel_text: str = "Cancel", tooltip: str = "stop the running operation; "
                  "nothing of it is shown"):
-        from magicgui.widgets import Container, Label, ProgressBar, PushButton
+        from magicgui.widgets import Container, ProgressBar, PushButton
 
         self.bar = ProgressBar(value=0, min=0, max=1000, label="progress")
         self.bar.native.setTextVisible(False)
         self.bar.tooltip = "progress of the running operation"
         self.cancel_button = PushButton(text=cancel_text, enabled=False, tooltip=tooltip)
-        self.status = Label(value="idle")
-        self.status.native.setWordWrap(True)  # a long message must not widen the dock
+        self.status = readout_label()  # word-wrapped: a long message must not widen the dock
+        self.status.value = "idle"
+        # Two lines, fixed: the status changes every tick while a job runs, and a label that
+        # changed height would re-lay out (and redraw) the whole widget each time.
+        metrics = self.status.native.fontMetrics()
+        self.status.native.setFixedHeight(2 * metrics.lineSpacing() + 4)
         self.status.tooltip = "state of the last operation started from this widget"
         self.row = Container(widgets=[self.bar, self.cancel_button], layout="horizontal", labels=False)
         self.row.margins = (0, 0, 0, 0)
@@ -402,6 +406,7 @@ def readout_label() -> Any:
     label = Label(value="")
     label.native.setWordWrap(True)
     label.native.setMinimumWidth(300)
+    label.native.setAlignment(Qt.AlignmentFlag.AlignLeft | Qt.AlignmentFlag.AlignVCenter)
     label.native.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
     return label
 
@@ -506,7 +511,8 @@ def param_tooltip(cls: type, name: str, *, label: str = "", section: str | None 
     if "default" in info:
         facts.append(f"default {_fmt(info['default'])}")
     if facts:
-        lines.append("; ".join(facts).capitalize() + ".")
+        text = "; ".join(facts)
+        lines.append(text[0].upper() + text[1:] + ".")
     if section:
         lines.append(f"Parameter file: [{section}] {name}")
     return "\n".join(lines)

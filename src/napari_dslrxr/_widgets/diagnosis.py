@@ -193,10 +193,11 @@ class DiagnosisWidget(Container):
         top_left = np.asarray(layer.translate[-2:], float) - scale * 0.5
         labels = np.array([top_left, top_left + beside])
         remove_layer(self._viewer, MAP_LABELS)
+        added = ", ".join(term.effect.replace("_", " ") for term in result.added) or "nothing found"
         self._viewer.add_points(labels, name=MAP_LABELS, size=0, features={"what": [
-            f"before: scene as given, χ²/dof {result.base_chi2_per_dof:.3g}",
-            f"after: + added effects, χ²/dof {result.final_chi2_per_dof:.3g}"]},
-            text={"string": "{what}", "color": "white", "size": 10, "anchor": "lower_left"})
+            "before (scene as given)", f"after (+ {added})"]},
+            text={"string": "{what}", "color": "yellow", "size": 10, "anchor": "lower_left",
+                  "translation": [-0.1 * width, 0.0]})
         rectangles = [np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float) - 0.5
                       for r0, c0, r1, c1 in result.regions]
         name = "mismatch regions"

@@ -159,7 +159,9 @@ class PSFEdgeWidget(Container):
 
         figure = Figure(figsize=(4.0, 2.6), dpi=80, tight_layout=True)
         canvas = FigureCanvasQTAgg(figure)
-        canvas.setMinimumHeight(200)
+        # Fixed height: a read-out changing its number of lines must not resize the canvas,
+        # which would redraw the whole figure on the GUI thread (100 ms or more).
+        canvas.setFixedHeight(210)
         self.native.layout().addWidget(canvas)
         return figure, canvas
 
