@@ -47,7 +47,10 @@ LOAD_AT_START = os.getloadavg()[0] / (os.cpu_count() or 1)
 #: Longest GUI-thread block by (widget, button), in three phases: the click handler itself,
 #: while the job computed in its worker, and showing the result. Printed by the last test.
 GAPS: dict[tuple[str, str], dict[str, float]] = {}
-SAMPLE_KEYS = ("radiograph", "flat", "dark", "dslr_set", "edges", "scene")
+#: The samples every test opens (the set holds radiograph, flat and dark); the first test opens
+#: the three single ones too, so every sample command of the manifest is used.
+SAMPLE_KEYS = ("dslr_set", "edges", "scene")
+SINGLE_SAMPLE_KEYS = ("radiograph", "flat", "dark")
 DOCS_SHOTS = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
 
 
@@ -235,6 +238,13 @@ def answer_file_dialog(file_edit, path) -> None:
 
 def test_dslrxr_view_docks_every_widget_and_no_preview_appears(plugin, shots):
     """Opening the plugin and every sample computes nothing and adds no preview layer."""
+    from npe2 import PluginManager
+
+    manifest = PluginManager.instance().get_manifest("napari-dslrxr")
+    keys = {sample.key for sample in manifest.contributions.sample_data}
+    assert keys == set(SAMPLE_KEYS) | set(SINGLE_SAMPLE_KEYS)
+    for key in SINGLE_SAMPLE_KEYS:
+        plugin.viewer.open_sample("napari-dslrxr", key)
     assert set(plugin.widgets) == set(plugin_widget_names()) and len(plugin.widgets) == 7
     plugin.qtbot.wait(300)  # longer than any preview debounce
     names = [layer.name for layer in plugin.viewer.layers]

@@ -155,15 +155,27 @@ class DeconvolutionWidget(Container):
 
     # -- regularisation ---------------------------------------------------------------------------
     @guarded("deconvolution")
-    def estimate(self) -> float | None:
-        """Set the slider to the core's data-driven estimate for the visible region."""
+    def estimate(self):
+        """Set the slider to the core's data-driven estimate for the visible region (in a
+        worker); return the worker."""
         layer = self._image_layer()
         image = np.asarray(layer.data)
         rows, cols = visible_region(self._viewer, layer, image.shape)
-        reg = estimate_regularisation(image[rows, cols], self.kernel(), self._method.value)
+        kernel, method = self.kernel(), self._method.value
+        self._auto.enabled = False
+        self._readout.value = "estimating the regularisation..."
+        return run_in_worker(estimate_regularisation, image[rows, cols], kernel, method,
+                             desc="regularisation estimate", on_returned=self._estimated,
+                             on_finished=self._estimate_done, panel=self._job, readout=self._readout)
+
+    def _estimated(self, reg: float) -> None:
         self._reg.value = float(np.clip(reg, REG_SLIDER_MIN, REG_SLIDER_MAX))
         self._readout.value = f"estimated regularisation {reg:.3g}"
-        return reg
+
+    def _estimate_done(self) -> None:
+        self._auto.enabled = True
+        if self._readout.value.endswith("..."):
+            self._readout.value = self._job.status.value
 
     # -- live preview -----------------------------------------------------------------------------
     def _live_toggled(self, on: bool) -> None:
