@@ -10,9 +10,9 @@ from magicgui.widgets.bases import ValueWidget
 
 from napari_dslrxr._cli.view import DOCK_WIDTH_PX, plugin_widget_names, populate_viewer
 from napari_dslrxr._widgets._common import param_tooltip
-from napari_dslrxr.core.contrast import ContrastParams
-from napari_dslrxr.core.dynamic_range import DynamicRangeParams
-from napari_dslrxr.core.impulse import ImpulseParams
+from napari_dslrxr.core.stages.contrast import ContrastParams
+from napari_dslrxr.core.stages.dynamic_range import DynamicRangeParams
+from napari_dslrxr.core.stages.impulse import ImpulseParams
 from napari_dslrxr.core.params import field_info, params_to_toml
 
 pytestmark = pytest.mark.gui

@@ -85,8 +85,8 @@ def test_batch_section_accepts_local_and_addresses_and_never_changes_the_run_ide
 
 
 def test_field_info_is_the_one_source_of_help_unit_and_range():
-    from napari_dslrxr.core.contrast import ContrastParams
-    from napari_dslrxr.core.impulse import ImpulseParams
+    from napari_dslrxr.core.stages.contrast import ContrastParams
+    from napari_dslrxr.core.stages.impulse import ImpulseParams
     from napari_dslrxr.core.params import field_info, params_to_toml
 
     info = field_info(ContrastParams, "bone_contrast")

@@ -167,7 +167,7 @@ def write_report(result: DiagnosisResult, out_dir: str | os.PathLike, *, inputs:
 
     The page names ``input_names`` (default: the ``inputs`` files) and the date ``created``
     when given (without it the bytes depend on the inputs only)."""
-    from .errors import OutputError
+    from ..errors import OutputError
 
     out = Path(out_dir)
     try:
