@@ -56,7 +56,8 @@ def test_hidden_glare_is_named_with_residual_layers_and_report(docked, wait_for_
     opened = []
     monkeypatch.setattr("webbrowser.open", lambda url: opened.append(url) or True)
     widget._report_dir.value = tmp_path / "report"
-    paths = widget.write()
+    wait_for_worker(widget.write())
+    paths = widget.report_paths
     assert (tmp_path / "report" / "report.html").is_file() and "veiling_glare" in paths["report"].read_text()
     assert widget.open_report() and opened == [(tmp_path / "report" / "report.html").resolve().as_uri()]
 

@@ -63,12 +63,17 @@ def test_flat_and_dark_from_files_and_live_preview(make_napari_viewer, wait_for_
     assert widget._dark.value is viewer.layers["dark: dark"]
     # Live preview: switching it on (and any later change) recomputes after the debounce.
     widget._preview.value = True
-    qtbot.waitUntil(lambda: "hand flat-fielded" in viewer.layers, timeout=20_000)
+    preview = "hand flat-fielded (preview)"
+    qtbot.waitUntil(lambda: preview in viewer.layers, timeout=20_000)
     wait_for_worker(widget._worker)
-    first = viewer.layers["hand flat-fielded"].data.copy()
+    first = viewer.layers[preview].data.copy()
     widget._smoothing.value = 0.0  # no smoothing: the flat's photon noise now enters the result
-    qtbot.waitUntil(lambda: not np.array_equal(viewer.layers["hand flat-fielded"].data, first), timeout=20_000)
+    qtbot.waitUntil(lambda: not np.array_equal(viewer.layers[preview].data, first), timeout=20_000)
     assert widget.get_params().flat_smoothing_px == 0.0
+    assert "hand flat-fielded" not in viewer.layers  # only "Apply" makes the result layer
+    # Turning the preview off removes its layer.
+    widget._preview.value = False
+    assert preview not in viewer.layers
 
 
 def test_missing_flat_and_bad_file_are_notifications(make_napari_viewer, errors_shown, tmp_path, rng):

@@ -82,3 +82,19 @@ def test_batch_section_accepts_local_and_addresses_and_never_changes_the_run_ide
     assert run_identity([frame], plain) == run_identity([frame], spread)  # same DICOM UIDs
     changed = params_from_dict({"contrast": {"bone_contrast": 1.5}})
     assert run_identity([frame], plain) != run_identity([frame], changed)
+
+
+def test_field_info_is_the_one_source_of_help_unit_and_range():
+    from napari_dslrxr.core.stages.contrast import ContrastParams
+    from napari_dslrxr.core.stages.impulse import ImpulseParams
+    from napari_dslrxr.core.params import field_info, params_to_toml
+
+    info = field_info(ContrastParams, "bone_contrast")
+    assert (info["min"], info["max"], info["default"], info["unit"]) == (0.5, 3.0, 2.0, "gain")
+    passes = field_info(ImpulseParams, "passes_h")  # ImpulseParams has no metadata of its own
+    assert (passes["min"], passes["max"], passes["default"]) == (0, 10, 3)
+    text = params_to_toml()
+    assert f"# {passes['help']} (unit: passes; range 0 to 10)" in text
+    assert f"# {info['help']} (unit: gain; range 0.5 to 3.0)" in text
+    with pytest.raises(KeyError):
+        field_info(ContrastParams, "no_such_field")

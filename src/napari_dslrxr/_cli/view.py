@@ -18,6 +18,8 @@ if TYPE_CHECKING:
 
 PLUGIN_NAME = "napari-dslrxr"
 READER_RGB = "napari-dslrxr.get_reader"
+#: Width of the right dock: the widgets' labels and sliders fit without truncation.
+DOCK_WIDTH_PX = 470
 
 
 def plugin_widget_names() -> list[str]:
@@ -58,13 +60,14 @@ def populate_viewer(viewer: napari.Viewer, files: list[Path], *, cfa_planes: boo
     names = plugin_widget_names() if widgets is None else widgets
     for i, name in enumerate(names):
         dock, widget = viewer.window.add_plugin_dock_widget(PLUGIN_NAME, name, tabify=i > 0)
+        dock.setWindowTitle(name)  # the tab shows "Flat field", not "Flat field (napari-dslrxr)"
         docked.append(widget)
         docks.append(dock)
     if docks:
         from qtpy.QtCore import QTimer
 
-        # The first stage's tab in front; deferred, as Qt lays the tabs out after this returns.
-        QTimer.singleShot(0, docks[0].raise_)
+        # Deferred: Qt lays the tabs out after this returns.
+        QTimer.singleShot(0, lambda: arrange_docks(viewer, docks))
     return docked
 
 
@@ -113,6 +116,24 @@ def restore_reader_preferences(added: dict[str, str]) -> None:
     kept = {k: v for k, v in current.items() if not (k in added and v == added[k])}
     if kept != current:
         plugins.extension2reader = kept
+
+
+def arrange_docks(viewer: napari.Viewer, docks: list) -> None:
+    """Widen the dock area, show whole tab titles (scroll arrows rather than "F..."), and put
+    the first stage's tab in front."""
+    from qtpy.QtCore import Qt
+    from qtpy.QtWidgets import QTabBar
+
+    window = viewer.window._qt_window
+    try:
+        window.resizeDocks(docks, [DOCK_WIDTH_PX] * len(docks), Qt.Orientation.Horizontal)
+        for bar in window.findChildren(QTabBar):
+            if bar.parent() is window:  # the tab bars of tabified docks
+                bar.setElideMode(Qt.TextElideMode.ElideNone)
+                bar.setUsesScrollButtons(True)
+        docks[0].raise_()
+    except RuntimeError:  # the window closed before the deferred call
+        pass
 
 
 def register(app: typer.Typer) -> None:

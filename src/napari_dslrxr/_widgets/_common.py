@@ -7,7 +7,10 @@ the results. Everything here runs on the GUI thread except the work handed to
 
 from __future__ import annotations
 
+import functools
 import logging
+import threading
+import time
 import traceback
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -68,16 +71,29 @@ def reported_errors(context: str = "") -> Iterator[None]:
 
 
 def guarded(context: str) -> Callable[[Callable], Callable]:
-    """Decorator form of :func:`reported_errors` for widget callbacks."""
+    """Decorator form of :func:`reported_errors` for widget callbacks.
+
+    The wrapper keeps the method's signature (``functools.wraps``), so a signal connected to
+    it passes only the arguments the method takes (a button's ``changed`` passes none to
+    ``run(self)``). When the method fails and its widget has a ``_readout`` label, the
+    read-out says so instead of keeping an old "running..." text.
+    """
 
     def decorate(fn: Callable) -> Callable:
+        @functools.wraps(fn)
         def wrapper(*args: Any, **kwargs: Any) -> Any:
-            with reported_errors(context):
+            try:
                 return fn(*args, **kwargs)
-            return None
+            except Exception as exc:  # noqa: BLE001 - the viewer must survive any failure
+                text = notify_error(exc, context=context)
+                readout = getattr(args[0], "_readout", None) if args else None
+                if readout is not None:
+                    try:
+                        readout.value = f"not done: {text}"
+                    except RuntimeError:  # widget already deleted
+                        pass
+                return None
 
-        wrapper.__name__ = fn.__name__
-        wrapper.__doc__ = fn.__doc__
         return wrapper
 
     return decorate
@@ -86,43 +102,179 @@ def guarded(context: str) -> Callable[[Callable], Callable]:
 # --------------------------------------------------------------------------- workers
 
 
+class JobPanel:
+    """Progress bar, Cancel button and status line of a widget's long operation.
+
+    Lives inside the widget (not only in napari's activity dock). The bar is determinate when
+    the job reports ``(done, total)`` (a generator yielding them, or the core's progress
+    callback :meth:`callback`), else busy. Cancel stops a job at its next progress report
+    (generator step or callback) and at once detaches it from the widget: the buttons are
+    enabled again, its result is never shown (no half-made layer), and a job without progress
+    reports that is still computing is left to finish in its thread, unseen.
+    """
+
+    #: How often the bar follows the progress the worker thread reports.
+    POLL_MS = 100
+
+    def __init__(self, cancel_text: str = "Cancel", tooltip: str = "stop the running operation; "
+                 "nothing of it is shown"):
+        from magicgui.widgets import Container, ProgressBar, PushButton
+
+        self.bar = ProgressBar(value=0, min=0, max=1000, label="progress")
+        self.bar.native.setTextVisible(False)
+        self.bar.tooltip = "progress of the running operation"
+        self.cancel_button = PushButton(text=cancel_text, enabled=False, tooltip=tooltip)
+        self.status = readout_label()  # word-wrapped: a long message must not widen the dock
+        self.status.value = "idle"
+        # Two lines, fixed: the status changes every tick while a job runs, and a label that
+        # changed height would re-lay out (and redraw) the whole widget each time.
+        metrics = self.status.native.fontMetrics()
+        self.status.native.setFixedHeight(2 * metrics.lineSpacing() + 4)
+        self.status.tooltip = "state of the last operation started from this widget"
+        self.row = Container(widgets=[self.bar, self.cancel_button], layout="horizontal", labels=False)
+        self.row.margins = (0, 0, 0, 0)
+        self.cancel_event = threading.Event()
+        self.worker = None
+        self.desc = ""
+        self._state: tuple = ()
+        self._started = 0.0
+        self._on_detach: Callable[[], None] | None = None
+        self.cancel_button.changed.connect(self.cancel)
+        from qtpy.QtCore import QTimer
+
+        self._timer = QTimer(self.row.native)
+        self._timer.setInterval(self.POLL_MS)
+        self._timer.timeout.connect(self._tick)
+
+    @property
+    def widgets(self) -> list:
+        """The magicgui widgets to place in the stage widget."""
+        return [self.row, self.status]
+
+    @property
+    def running(self) -> bool:
+        return self.worker is not None
+
+    # -- called from the worker thread ----------------------------------------------------------
+    def callback(self, *args: Any) -> None:
+        """Progress callback for the core: ``(done, total)`` or a message; raises
+        :class:`WorkCancelled` once Cancel was pressed (the core stops there)."""
+        if self.cancel_event.is_set():
+            raise WorkCancelled(f"{self.desc}: cancelled")
+        self._state = args
+
+    # -- GUI thread -----------------------------------------------------------------------------
+    def begin(self, worker: Any, desc: str, on_detach: Callable[[], None] | None) -> None:
+        self.cancel_event.clear()
+        self.worker, self.desc, self._on_detach = worker, desc, on_detach
+        self._state = ()
+        self._started = time.perf_counter()
+        self.bar.native.setRange(0, 0)  # busy until the first (done, total)
+        self.cancel_button.enabled = True
+        self.status.value = f"{desc}: running..."
+        self._timer.start()
+
+    def update(self, value: Any) -> None:
+        """Show ``(done, total)`` (from a generator's yield) or a message."""
+        self._state = tuple(value) if isinstance(value, (tuple, list)) else (value,)
+        self._tick()
+
+    def _tick(self) -> None:
+        if self.worker is None:
+            return
+        state, elapsed = self._state, time.perf_counter() - self._started
+        message = ""
+        if len(state) == 2 and all(isinstance(v, (int, float, np.integer, np.floating)) for v in state):
+            done, total = (float(v) for v in state)
+            if total > 0:
+                self.bar.native.setRange(0, 1000)
+                self.bar.value = int(round(1000 * min(max(done / total, 0.0), 1.0)))
+        elif len(state) == 1 and isinstance(state[0], str):
+            message = f" ({state[0]})"
+        self.status.value = f"{self.desc}: running {elapsed:.1f} s{message}"
+
+    def end(self, worker: Any, outcome: str) -> bool:
+        """The job's thread ended; returns False when the job was detached already (cancelled)."""
+        if worker is not self.worker:
+            return False
+        self._finish(outcome)
+        return True
+
+    def _finish(self, outcome: str) -> None:
+        self._timer.stop()
+        self.worker = None
+        self.bar.native.setRange(0, 1000)
+        self.bar.value = 0
+        self.cancel_button.enabled = False
+        self.status.value = outcome
+        on_detach, self._on_detach = self._on_detach, None
+        if on_detach is not None:
+            with reported_errors(self.desc):
+                on_detach()
+
+    def cancel(self) -> None:
+        """Stop the running job (button slot); a no-op when nothing runs."""
+        worker = self.worker
+        if worker is None:
+            return
+        self.cancel_event.set()
+        worker.dslrxr_cancelled = True
+        quit_ = getattr(worker, "quit", None)
+        if quit_ is not None:
+            quit_()
+        self._finish(f"{self.desc}: cancelled")
+        notify_info(f"{self.desc}: cancelled")
+
+
 def run_in_worker(work: Callable, *args: Any, desc: str,
                   on_returned: Callable[[Any], None],
                   on_finished: Callable[[], None] | None = None,
                   progress_bar: bool = True,
+                  panel: JobPanel | None = None,
+                  readout: Any = None,
                   **kwargs: Any):
-    """Run ``work(*args, **kwargs)`` in a napari thread worker with a progress bar.
+    """Run ``work(*args, **kwargs)`` in a napari thread worker.
 
     Parameters
     ----------
     work : callable
         Either a generator function that yields ``(done, total)`` and returns its result
-        (the bar shows the fraction and has a cancel button that stops the worker at the
-        next yield), or a plain function (indeterminate bar).
+        (``worker.quit()`` stops it at the next yield), or a plain function.
     desc : str
-        Progress bar label.
+        What runs, for the progress display and messages.
     on_returned : callable
         Called on the GUI thread with the result; exceptions in it become notifications.
+        Never called for a cancelled job.
     on_finished : callable, optional
-        Called on the GUI thread after success, error or cancel (e.g. to re-enable a button).
+        Called on the GUI thread once the job is over for the widget: after success, error,
+        or at once when Cancel is pressed (e.g. to re-enable a button).
     progress_bar : bool
-        Show a bar in napari's activity dock (off for sub-second live previews).
+        Without a ``panel``: show a bar in napari's activity dock (off for live previews).
+    panel : JobPanel, optional
+        The widget's own progress bar and Cancel button; pass ``progress=panel.callback`` to
+        a core function that takes a progress callback so Cancel stops it promptly.
+    readout : magicgui Label, optional
+        Set to the error message when the job fails, so it never keeps "running...".
 
     Returns
     -------
     napari.qt.threading.WorkerBase
-        The started worker; ``worker.quit()`` cancels. Its attribute ``dslrxr_finished``
-        becomes True on the GUI thread once ``on_returned``/``on_finished`` have run (tests
-        wait for it with ``qtbot.waitUntil``).
+        The started worker. Its attribute ``dslrxr_finished`` becomes True on the GUI thread
+        once the thread ended and ``on_returned``/``on_finished`` have run (tests wait for it
+        with ``qtbot.waitUntil``); ``dslrxr_cancelled`` is True when the user cancelled it.
     """
     from napari.qt.threading import GeneratorWorker, create_worker
     from napari.utils import cancelable_progress, progress
 
     worker = create_worker(work, *args, _start_thread=False, _ignore_errors=True, **kwargs)
     worker.dslrxr_finished = False
-    if not progress_bar:
-        pbar = None
-    elif isinstance(worker, GeneratorWorker):
+    worker.dslrxr_cancelled = False
+    pbar = None
+    if panel is not None:
+        panel.begin(worker, desc, on_finished)
+        if isinstance(worker, GeneratorWorker):
+            worker.yielded.connect(panel.update)
+    elif progress_bar and isinstance(worker, GeneratorWorker):
         pbar = cancelable_progress(total=0, desc=desc, cancel_callback=worker.quit)
 
         def _yielded(value: Any) -> None:
@@ -137,32 +289,59 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
 
         worker.yielded.connect(_yielded)
         worker.aborted.connect(lambda: notify_info(f"{desc}: cancelled"))
-    else:
+    elif progress_bar:
         pbar = progress(total=0, desc=desc)
+    outcome = {"text": f"{desc}: done"}
 
     def _returned(result: Any) -> None:
+        worker.dslrxr_returned_at = time.perf_counter()  # the result reaches the GUI thread
+        if worker.dslrxr_cancelled:
+            return
+        started = getattr(panel, "_started", None)
+        if started:
+            outcome["text"] = f"{desc}: done in {time.perf_counter() - started:.1f} s"
         with reported_errors(desc):
             on_returned(result)
 
     def _finished() -> None:
         if pbar is not None:
             pbar.close()
-        worker.dslrxr_finished = True  # set on the GUI thread after the result was shown
-        if on_finished is not None:
+        if panel is not None:
+            if panel.end(worker, outcome["text"]):
+                pass  # on_finished ran as the panel's detach hook
+        elif on_finished is not None:
             with reported_errors(desc):
                 on_finished()
+        worker.dslrxr_finished = True  # set on the GUI thread after the result was shown
 
     def _errored(exc: BaseException) -> None:
+        if worker.dslrxr_cancelled:
+            return  # the user was told when pressing Cancel
         if isinstance(exc, WorkCancelled):
+            outcome["text"] = f"{desc}: cancelled"
             notify_info(f"{desc}: cancelled")
-        else:
-            notify_error(exc, context=desc)
+            return
+        text = notify_error(exc, context=desc)
+        outcome["text"] = f"failed: {text}"
+        if readout is not None:
+            try:
+                readout.value = f"failed: {text}"
+            except RuntimeError:
+                pass
 
     worker.returned.connect(_returned)
     worker.errored.connect(_errored)
     worker.finished.connect(_finished)
     worker.start()
     return worker
+
+
+def remove_layer(viewer: napari.Viewer, name: str) -> bool:
+    """Remove the layer called ``name`` if there is one; return whether it was there."""
+    if name in viewer.layers:
+        viewer.layers.remove(name)
+        return True
+    return False
 
 
 # --------------------------------------------------------------------------- layers
@@ -227,6 +406,7 @@ def readout_label() -> Any:
     label = Label(value="")
     label.native.setWordWrap(True)
     label.native.setMinimumWidth(300)
+    label.native.setAlignment(Qt.AlignmentFlag.AlignLeft | Qt.AlignmentFlag.AlignVCenter)
     label.native.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
     return label
 
@@ -299,3 +479,142 @@ def debounced(owner: Any, fn: Callable[[], None], timeout_ms: int) -> Callable[.
     trigger.cancel = throttled.cancel  # type: ignore[attr-defined]
     trigger.flush = throttled.flush  # type: ignore[attr-defined]
     return trigger
+
+
+# --------------------------------------------------------------------------- parameter controls
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
+
+
+def param_tooltip(cls: type, name: str, *, label: str = "", section: str | None = None,
+                  term: str | None = None) -> str:
+    """Tooltip of the control of field ``name`` of parameter dataclass ``cls``: meaning, unit,
+    range (or choices), default and where it lives in the parameter file, all from the
+    field's metadata (:func:`napari_dslrxr.core.params.field_info`)."""
+    from ..core.params import field_info
+
+    info = field_info(cls, name)
+    lines = [f"{label}: {info['help']}" if label else info["help"]]
+    if term:
+        lines.append(f"Technical term: {term}.")
+    facts = []
+    if info.get("unit"):
+        facts.append(f"unit: {info['unit']}")
+    if info.get("choices"):
+        facts.append("one of " + ", ".join(_fmt(c) for c in info["choices"]))
+    elif info.get("min") is not None or info.get("max") is not None:
+        facts.append(f"range {_fmt(info.get('min'))} to {_fmt(info.get('max'))}")
+    if "default" in info:
+        facts.append(f"default {_fmt(info['default'])}")
+    if facts:
+        text = "; ".join(facts)
+        lines.append(text[0].upper() + text[1:] + ".")
+    if section:
+        lines.append(f"Parameter file: [{section}] {name}")
+    return "\n".join(lines)
+
+
+def param_widget(cls: type, name: str, *, label: str, section: str | None = None, term: str | None = None,
+                 slider: bool = False, **kwargs: Any):
+    """The magicgui control of a parameter field: type, range, choices, default and tooltip
+    all from the field's metadata (one source with the TOML comments and the CLI).
+
+    ``kwargs`` go to the magicgui widget (e.g. ``step``); ``value`` overrides the default.
+    """
+    from magicgui.widgets import CheckBox, ComboBox, FloatSlider, FloatSpinBox, SpinBox
+
+    from ..core.params import field_info
+
+    info = field_info(cls, name)
+    default = kwargs.pop("value", info.get("default"))
+    tooltip = param_tooltip(cls, name, label=label, section=section, term=term)
+    common = {"label": label, "tooltip": tooltip, **kwargs}
+    if info.get("choices"):
+        return ComboBox(choices=list(info["choices"]), value=default, **common)
+    if isinstance(default, bool):
+        return CheckBox(value=default, **common)
+    lo, hi = info.get("min"), info.get("max")
+    if isinstance(default, int):
+        return SpinBox(value=default, min=int(lo if lo is not None else 0), max=int(hi if hi is not None else 10**9),
+                       **common)
+    lo = float(lo) if lo is not None else 0.0
+    hi = float(hi) if hi is not None else 1e9
+    common.setdefault("step", _nice_step(hi - lo))
+    if slider:
+        widget = FloatSlider(value=float(default), min=lo, max=hi, **common)
+        widget.native.setMinimumWidth(200)  # the track stays visible beside its label
+        return widget
+    return FloatSpinBox(value=float(default), min=lo, max=hi, **common)
+
+
+def _nice_step(span: float) -> float:
+    """A round step of about a hundredth of ``span`` (0.01 for 0..1, 1 for 0..100...)."""
+    if not span > 0:
+        return 0.01
+    return float(10 ** np.floor(np.log10(span / 100.0)))
+
+
+def restore_defaults_button(restore: Callable[[], None]):
+    """A "Restore defaults" push button calling ``restore`` (errors become notifications)."""
+    from magicgui.widgets import PushButton
+
+    button = PushButton(text="Restore defaults", tooltip="set this widget's parameters back to their defaults")
+
+    @guarded("restore defaults")
+    def _restore() -> None:
+        restore()
+
+    button.changed.connect(_restore)
+    return button
+
+
+# --------------------------------------------------------------------------- responsiveness
+
+
+class EventLoopMonitor:
+    """How long the GUI thread was blocked: the largest gap between ticks of a fast timer.
+
+    ``start()``, do things (click, wait for workers), ``stop()`` returns the largest gap in
+    seconds (the timer interval included, so an idle loop gives about ``interval_ms``).
+    """
+
+    def __init__(self, interval_ms: int = 5):
+        from qtpy.QtCore import QTimer
+
+        self.interval_s = interval_ms / 1000.0
+        self._timer = QTimer()
+        self._timer.setInterval(interval_ms)
+        self._timer.timeout.connect(self._tick)
+        self.max_gap_s = 0.0
+        self._last = 0.0
+        self.gaps: list[tuple[float, float]] = []  # (start, end) of every gap over 3 intervals
+
+    def start(self) -> EventLoopMonitor:
+        self.max_gap_s = 0.0
+        self.gaps = []
+        self._last = time.perf_counter()
+        self._timer.start()
+        return self
+
+    def _tick(self) -> None:
+        now = time.perf_counter()
+        gap = now - self._last
+        self.max_gap_s = max(self.max_gap_s, gap)
+        if gap > 3 * self.interval_s:
+            self.gaps.append((self._last, now))
+        self._last = now
+
+    def max_gap_between(self, start: float, end: float) -> float:
+        """Largest gap that ended in ``(start, end]`` (e.g. while a worker computed: a gap
+        ending after the result arrived was caused by showing it)."""
+        inside = [b - a for a, b in self.gaps if start < b <= end]
+        return max(inside, default=self.interval_s)
+
+    def stop(self) -> float:
+        self._tick()
+        self._timer.stop()
+        return self.max_gap_s

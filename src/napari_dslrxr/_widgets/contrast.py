@@ -35,7 +35,10 @@ from ..core.errors import ParameterError
 from ..core.io.input_kind import InputKind, decide_input_kind
 from ..core.params import PipelineParams
 from ..core.pipeline import apply_display_stages, process_frame, scale_display_radiograph
-from ._common import debounced, guarded, readout_label, run_in_worker, show_layer
+from ..core.stages.contrast import ContrastParams
+from ..core.stages.dynamic_range import DynamicRangeParams
+from ._common import (JobPanel, debounced, guarded, param_widget, readout_label, remove_layer,
+                      restore_defaults_button, run_in_worker, show_layer)
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -44,17 +47,19 @@ if TYPE_CHECKING:
 LINEAR, DISPLAY = "linear counts (camera frame)", "display radiograph (bright = bone)"
 _DEBOUNCE_MS = 60
 
-#: (section, field, label, min, max) of each slider.
+#: (section, field, label in the radiologist's words, technical term) of each slider; range,
+#: default and help come from the field's metadata.
 SLIDERS = (
-    ("dynamic_range", "lut_width", "dynamic range (display width)", 0.05, 2.0),
-    ("dynamic_range", "lut_center", "display centre", 0.0, 1.0),
-    ("dynamic_range", "latitude", "latitude (large-area gain)", 0.1, 1.0),
-    ("dynamic_range", "detail_gain", "detail gain", 1.0, 3.0),
-    ("contrast", "detail_contrast", "detail contrast", 0.0, 1.0),
-    ("contrast", "bone_contrast", "bone contrast", 0.5, 3.0),
-    ("contrast", "edge_sharpness", "edge sharpness", 0.5, 3.0),
-    ("contrast", "halo_step", "halo guard (0 = off)", 0.0, 2.0),
+    ("dynamic_range", "lut_width", "window width", "width of the sigmoid display curve (LUT)"),
+    ("dynamic_range", "lut_center", "window level", "centre of the sigmoid display curve (LUT)"),
+    ("dynamic_range", "latitude", "latitude", "low-frequency gain of dynamic-range reduction"),
+    ("dynamic_range", "detail_gain", "detail gain", "gain above the low-pass kernel (unsharp masking)"),
+    ("contrast", "detail_contrast", "fine detail", "MUSICA coefficient power p = 1 - 0.7 x value"),
+    ("contrast", "bone_contrast", "bone contrast", "gain of the mid and coarse Laplacian-pyramid bands"),
+    ("contrast", "edge_sharpness", "edge enhancement", "gain of the finest Laplacian-pyramid band"),
+    ("contrast", "halo_step", "halo guard", "edge-step threshold of unit gain (0 = off)"),
 )
+SECTION_CLASSES = {"dynamic_range": DynamicRangeParams, "contrast": ContrastParams}
 
 
 @dataclass
@@ -107,7 +112,7 @@ def prepare_input(data: np.ndarray, kind: str, max_pixels: int, params: Pipeline
 
 
 def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: PipelineParams,
-           max_pixels: int, full: bool) -> tuple[PreparedInput, np.ndarray]:
+           max_pixels: int, full: bool, progress=None) -> tuple[PreparedInput, np.ndarray]:
     """Worker job: prepare the input if needed, then the core display stages on it.
 
     The stages after value-of-interest scaling, exactly as the pipeline runs them
@@ -115,8 +120,12 @@ def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: 
     multiscale contrast and the display curve; outside the screen region is black (or
     white), as in the pipeline's output.
     """
+    if progress is not None:
+        progress(0, 2)
     if prepared is None:
         prepared = prepare_input(data, kind, max_pixels, params)
+    if progress is not None:
+        progress(1, 2)
     image, mask = (prepared.image, prepared.mask) if full else (prepared.small, prepared.small_mask)
     return prepared, apply_display_stages(image, mask, params)
 
@@ -139,32 +148,49 @@ class ContrastWidget(Container):
         self._viewer = viewer
         self.preview_max_pixels = int(preview_max_pixels)
         self._image = create_widget(annotation="napari.layers.Image", label="image")
-        self._kind = ComboBox(choices=[LINEAR, DISPLAY], value=LINEAR, label="input")
+        self._image.tooltip = "the radiograph to display (a flat-fielded camera frame, or a DICOM CR/DX)"
+        self._kind = ComboBox(choices=[LINEAR, DISPLAY], value=LINEAR, label="input",
+                              tooltip="linear counts: a camera frame (more X-rays = brighter), converted to "
+                                      "attenuation first; display radiograph: a CR/DX image already shown "
+                                      "bone-bright")
         defaults = PipelineParams()
         self._sliders: dict[tuple[str, str], FloatSlider] = {}
-        for section, name, label, lo, hi in SLIDERS:
-            value = getattr(getattr(defaults, section), name)
-            self._sliders[(section, name)] = FloatSlider(value=value, min=lo, max=hi, step=0.01, label=label)
-        self._live = CheckBox(value=True, label="live preview")
-        self._apply = PushButton(text="Apply at full resolution")
+        for section, name, label, term in SLIDERS:
+            self._sliders[(section, name)] = param_widget(SECTION_CLASSES[section], name, label=label,
+                                                          section=section, term=term, slider=True, step=0.01)
+        self._live = CheckBox(value=False, label="live preview",
+                              tooltip="show '<image> contrast (preview)' at screen resolution while you move "
+                                      "the sliders; off removes the preview layer")
+        self._apply = PushButton(text="Apply at full resolution",
+                                 tooltip="compute '<image> contrast' at full resolution with these settings")
+        self._restore = restore_defaults_button(self.restore_defaults)
+        self._job = JobPanel()
         self._readout = readout_label()
         super().__init__(widgets=[self._image, self._kind, *self._sliders.values(), self._live, self._apply,
-                                  self._readout])
+                                  *self._job.widgets, self._readout, self._restore])
         self._base = defaults  # keeps the fields without a slider (and the other sections)
         self._prepared: tuple | None = None  # (key, PreparedInput)
         self._preview_worker = None
         self._preview_pending = False
+        self._preview_layer: str | None = None
         self.last_preview_s: float | None = None
         self.preview: np.ndarray | None = None
         self.result: np.ndarray | None = None
         trigger = debounced(self, self.update_preview, _DEBOUNCE_MS)
         for widget in (*self._sliders.values(), self._live, self._kind):
             widget.changed.connect(trigger)
+        self._live.changed.connect(self._live_toggled)
+        self._image.changed.connect(self._drop_preview)
         self._image.changed.connect(self._input_changed)
         self._image.changed.connect(trigger)
         self._apply.changed.connect(self.run)
         register_stage_widget(viewer, self)
         self._input_changed()  # the layer preselected at creation emits no change
+
+    def restore_defaults(self) -> None:
+        """Sliders back to the defaults of the parameter dataclasses."""
+        defaults = PipelineParams()
+        self.set_params({"dynamic_range": defaults.dynamic_range, "contrast": defaults.contrast})
 
     # -- parameters (TOML sections [dynamic_range] and [contrast]) ------------------------------
     def pipeline_params(self) -> PipelineParams:
@@ -212,6 +238,16 @@ class ContrastWidget(Container):
                           prepared)
 
     # -- live preview -------------------------------------------------------------------------------
+    def _live_toggled(self, on: bool) -> None:
+        if not on:
+            self._drop_preview()
+
+    def _drop_preview(self, *_args) -> None:
+        """Remove the preview layer (preview turned off, or another image chosen)."""
+        if self._preview_layer is not None:
+            remove_layer(self._viewer, self._preview_layer)
+            self._preview_layer = None
+
     def update_preview(self) -> None:
         """Recompute the preview (no-op unless live preview is on and an image is chosen)."""
         if not self._live.value or self._image.value is None:
@@ -232,6 +268,7 @@ class ContrastWidget(Container):
         started = time.perf_counter()
         if full:
             self._apply.enabled = False
+            self._readout.value = "running..."
         else:
             self._preview_pending = False
 
@@ -240,12 +277,15 @@ class ContrastWidget(Container):
             self._store(layer, kind, prepared)
             self._show(layer, prepared, display, full, started)
 
+        if full:
+            return run_in_worker(render, self._cached(layer), np.asarray(layer.data), kind, params,
+                                 self.preview_max_pixels, True, progress=self._job.callback, desc="contrast",
+                                 on_returned=returned, on_finished=self._apply_done, panel=self._job,
+                                 readout=self._readout)
         worker = run_in_worker(render, self._cached(layer), np.asarray(layer.data), kind, params,
-                               self.preview_max_pixels, full, desc="contrast" if full else "contrast preview",
-                               progress_bar=full, on_returned=returned,
-                               on_finished=self._apply_done if full else self._preview_done)
-        if not full:
-            self._preview_worker = worker
+                               self.preview_max_pixels, False, desc="contrast preview", progress_bar=False,
+                               on_returned=returned, on_finished=self._preview_done)
+        self._preview_worker = worker
         return worker
 
     def _preview_done(self) -> None:
@@ -255,6 +295,8 @@ class ContrastWidget(Container):
 
     def _apply_done(self) -> None:
         self._apply.enabled = True
+        if self._readout.value == "running...":
+            self._readout.value = self._job.status.value
 
     def _show(self, layer, prepared: PreparedInput, display: np.ndarray, full: bool, started: float) -> None:
         scale = np.asarray(layer.scale[-2:], float) * (1.0 if full else prepared.factor)
@@ -262,7 +304,11 @@ class ContrastWidget(Container):
         translate = np.asarray(layer.translate[-2:], float)
         if not full:
             translate = translate + np.asarray(layer.scale[-2:], float) * (prepared.factor - 1.0) / 2.0
+        if not full and (not self._live.value or layer is not self._image.value):
+            return  # preview turned off, or another image chosen, while it computed
         name = f"{layer.name} contrast" if full else f"{layer.name} contrast (preview)"
+        if not full:
+            self._preview_layer = name
         show_layer(self._viewer, display, name, "image", scale=tuple(scale), translate=tuple(translate),
                    contrast_limits=(0.0, 1.0), colormap="gray")
         elapsed = time.perf_counter() - started

@@ -17,14 +17,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, FloatLogSlider, FloatSpinBox,
-                              PushButton, create_widget)
+from magicgui.widgets import CheckBox, Container, FileEdit, FloatLogSlider, PushButton, create_widget
 
-from ..core.stages.deconvolution import (METHODS, DeconvolutionParams, deconvolve, deconvolve_steps,
-                                  estimate_regularisation)
+from ..core.stages.deconvolution import DeconvolutionParams, deconvolve, deconvolve_steps, estimate_regularisation
+from ..core.psf.edge_fit import EdgeFitSettings
 from ..core.errors import ParameterError
+from ..core.params import DeblurParams
 from ..core.psf import load_psf
-from ._common import debounced, guarded, readout_label, run_in_worker, show_layer, viewer_camera, visible_region
+from ._common import (JobPanel, debounced, guarded, notify_info, param_tooltip, param_widget, readout_label,
+                      remove_layer, restore_defaults_button, robust_limits, run_in_worker, show_layer,
+                      viewer_camera, visible_region)
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -34,6 +36,8 @@ if TYPE_CHECKING:
 #: the sparse adaptive prior is previewed by the gradient-regularised solve it starts from.
 PREVIEW_METHOD = {"wiener": "wiener", "rls": "rls", "adaptive": "rls"}
 REG_SLIDER_MIN, REG_SLIDER_MAX = 1e-1, 1e6
+#: Where the regularisation slider starts (and returns to with "Restore defaults").
+REG_START = 100.0
 _DEBOUNCE_MS = 60
 
 
@@ -52,46 +56,70 @@ class DeconvolutionWidget(Container):
     def __init__(self, viewer: napari.viewer.Viewer):
         self._viewer = viewer
         self._image = create_widget(annotation="napari.layers.Image", label="image")
+        self._image.tooltip = "the radiograph to sharpen (after impulse removal and flat field)"
         self._kernel_layer = create_widget(annotation="napari.layers.Image | None", label="kernel layer")
-        self._psf_file = FileEdit(mode="r", filter="*.json", label="or psf.json")
-        self._sod = FloatSpinBox(value=1000.0, min=1.0, max=1e5, step=10.0, label="source-object (mm)")
-        self._sdd = FloatSpinBox(value=1100.0, min=1.0, max=1e5, step=10.0, label="source-detector (mm)")
-        self._method = ComboBox(choices=list(METHODS), value="adaptive", label="method")
+        self._kernel_layer.tooltip = ("the blur kernel as an image layer, e.g. 'PSF kernel' from the PSF widget; "
+                                      "leave empty to use a psf.json")
+        self._psf_file = FileEdit(mode="r", filter="*.json", label="or psf.json",
+                                  tooltip="a PSF model saved by the PSF widget or 'dslrxr psf'; its kernel is "
+                                          "computed at the distances below")
+        self._sod = param_widget(EdgeFitSettings, "source_to_object_mm", label="source-object (mm)", step=10.0)
+        self._sdd = param_widget(EdgeFitSettings, "source_to_detector_mm", label="source-detector (mm)", step=10.0)
+        self._method = param_widget(DeblurParams, "method", label="method", section="deblur",
+                                    value="adaptive")
         # 200 slider positions per decade (1.2 % steps); magicgui's default is 100 in all.
         self._reg = FloatLogSlider(min=REG_SLIDER_MIN, max=REG_SLIDER_MAX, base=10,
                                    max_pos=200 * round(np.log10(REG_SLIDER_MAX / REG_SLIDER_MIN)),
                                    label="regularisation",
-                                   tooltip="gradient prior precision relative to the noise; larger = smoother")
-        self._reg.value = 100.0  # after the positions are set, or the value is misplaced
+                                   tooltip=param_tooltip(DeblurParams, "reg", label="regularisation", section="deblur",
+                                                         term="precision of the gradient prior relative to the noise; "
+                                                              "larger = smoother, less noise, less sharpening")
+                                   + f"\nSlider: {REG_SLIDER_MIN:g} to {REG_SLIDER_MAX:g} (log scale).")
+        self._reg.value = REG_START  # after the positions are set, or the value is misplaced
         # magicgui's log-slider read-out shows the slider position, not the value: hide it
         # and show the value in the label instead.
         hide_readout = getattr(self._reg._widget, "_mgui_set_readout_visibility", None)
         if hide_readout is not None:
             hide_readout(False)
+        self._reg.native.setMinimumWidth(200)
         self._reg.changed.connect(self._label_reg)
         self._label_reg()
-        self._auto = PushButton(text="Estimate regularisation")
-        self._live = CheckBox(value=False, label="live preview (visible region)")
-        self._apply = PushButton(text="Apply to the whole image")
+        self._auto = PushButton(text="Estimate regularisation",
+                                tooltip="set the slider from the noise and detail of the visible region")
+        self._live = CheckBox(value=False, label="live preview (visible region)",
+                              tooltip="deconvolve only what the canvas shows, with a fast solver, on every change; "
+                                      "off removes the preview layer")
+        self._apply = PushButton(text="Apply to the whole image",
+                                 tooltip="deconvolve the whole image with the chosen method; adds '<image> deconvolved'")
+        self._restore = restore_defaults_button(self.restore_defaults)
+        self._job = JobPanel()
         self._readout = readout_label()
         super().__init__(widgets=[self._image, self._kernel_layer, self._psf_file, self._sod, self._sdd,
-                                  self._method, self._reg, self._auto, self._live, self._apply, self._readout])
+                                  self._method, self._reg, self._auto, self._live, self._apply, *self._job.widgets,
+                                  self._readout, self._restore])
         self.result: np.ndarray | None = None
         self.last_preview: dict | None = None
         self._kernel_cache: tuple | None = None
         self._preview_worker = None
         self._preview_pending = False
-        self._full_worker = None
+        self._preview_layer: str | None = None
         self._trigger_preview = debounced(self, self.update_preview, _DEBOUNCE_MS)
         for widget in (self._reg, self._method, self._live, self._image, self._kernel_layer, self._psf_file,
                        self._sod, self._sdd):
             widget.changed.connect(self._trigger_preview)
+        self._live.changed.connect(self._live_toggled)
+        self._image.changed.connect(self._drop_preview)
         self._auto.changed.connect(self.estimate)
         self._apply.changed.connect(self.run)
         camera = viewer_camera(viewer)
         camera.events.center.connect(self._trigger_preview)
         camera.events.zoom.connect(self._trigger_preview)
         register_stage_widget(viewer, self)
+
+    def restore_defaults(self) -> None:
+        """Method back to its default and the slider to its starting value."""
+        self._method.value = DeblurParams().method
+        self._reg.value = REG_START
 
     def _label_reg(self, *_args) -> None:
         self._reg.label = f"regularisation {float(self._reg.value):.3g}"
@@ -127,17 +155,39 @@ class DeconvolutionWidget(Container):
 
     # -- regularisation ---------------------------------------------------------------------------
     @guarded("deconvolution")
-    def estimate(self) -> float | None:
-        """Set the slider to the core's data-driven estimate for the visible region."""
+    def estimate(self):
+        """Set the slider to the core's data-driven estimate for the visible region (in a
+        worker); return the worker."""
         layer = self._image_layer()
         image = np.asarray(layer.data)
         rows, cols = visible_region(self._viewer, layer, image.shape)
-        reg = estimate_regularisation(image[rows, cols], self.kernel(), self._method.value)
+        kernel, method = self.kernel(), self._method.value
+        self._auto.enabled = False
+        self._readout.value = "estimating the regularisation..."
+        return run_in_worker(estimate_regularisation, image[rows, cols], kernel, method,
+                             desc="regularisation estimate", on_returned=self._estimated,
+                             on_finished=self._estimate_done, panel=self._job, readout=self._readout)
+
+    def _estimated(self, reg: float) -> None:
         self._reg.value = float(np.clip(reg, REG_SLIDER_MIN, REG_SLIDER_MAX))
         self._readout.value = f"estimated regularisation {reg:.3g}"
-        return reg
+
+    def _estimate_done(self) -> None:
+        self._auto.enabled = True
+        if self._readout.value.endswith("..."):
+            self._readout.value = self._job.status.value
 
     # -- live preview -----------------------------------------------------------------------------
+    def _live_toggled(self, on: bool) -> None:
+        if not on:
+            self._drop_preview()
+
+    def _drop_preview(self, *_args) -> None:
+        """Remove the preview layer (preview turned off, or another image chosen)."""
+        if self._preview_layer is not None:
+            remove_layer(self._viewer, self._preview_layer)
+            self._preview_layer = None
+
     def update_preview(self) -> None:
         """Recompute the preview of the visible region (no-op unless live preview is on)."""
         if not self._live.value or self._image.value is None:
@@ -167,10 +217,13 @@ class DeconvolutionWidget(Container):
             self.update_preview()
 
     def _show_preview(self, layer, out: np.ndarray, rows: slice, cols: slice, method: str, reg: float) -> None:
+        if not self._live.value or layer is not self._image.value:
+            return  # preview turned off, or another image chosen, while it computed
         scale = np.asarray(layer.scale[-2:], float)
         translate = np.asarray(layer.translate[-2:], float) + scale * (rows.start, cols.start)
         limits = layer.contrast_limits if not getattr(layer, "rgb", False) else None
-        show_layer(self._viewer, out, f"{layer.name} deconvolved (preview)", "image",
+        self._preview_layer = f"{layer.name} deconvolved (preview)"
+        show_layer(self._viewer, out, self._preview_layer, "image",
                    rgb=out.ndim == 3, scale=tuple(scale), translate=tuple(translate),
                    **({"contrast_limits": limits} if limits is not None else {}))
         self.last_preview = {"rows": rows, "cols": cols, "method": PREVIEW_METHOD[method], "reg": reg}
@@ -189,23 +242,35 @@ class DeconvolutionWidget(Container):
         self._readout.value = f"deconvolving with {params.method}..."
         self._full_worker = run_in_worker(
             deconvolve_steps, image, kernel, method=params.method, reg=params.reg,
-            desc=f"deconvolution ({params.method})",
-            on_returned=lambda out: self._show_full(layer, out, params), on_finished=self._full_done)
+            desc=f"deconvolution ({params.method})", panel=self._job, readout=self._readout,
+            on_returned=lambda out: self._show_full(layer, image, out, params), on_finished=self._full_done)
         return self._full_worker
 
     def cancel(self) -> None:
-        """Stop the whole-image run at its next step."""
-        if self._full_worker is not None:
-            self._full_worker.quit()
+        """Stop the whole-image run at its next step (the Cancel button)."""
+        self._job.cancel()
 
     def _full_done(self) -> None:
         self._apply.enabled = True
         if self._readout.value.endswith("..."):
-            self._readout.value = "deconvolution cancelled or failed (see notifications)"
+            self._readout.value = self._job.status.value
 
-    def _show_full(self, layer, out: np.ndarray, params: DeconvolutionParams) -> None:
+    def _show_full(self, layer, image: np.ndarray, out: np.ndarray, params: DeconvolutionParams) -> None:
+        """The result with display limits from its own values, and a warning when they leave
+        the input's range (ringing or over-sharpening: try a larger regularisation)."""
         self.result = out
-        kwargs = {"contrast_limits": layer.contrast_limits} if not getattr(layer, "rgb", False) else {}
+        limits = robust_limits(out)
         show_layer(self._viewer, out, f"{layer.name} deconvolved", "image", rgb=out.ndim == 3,
-                   scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]), **kwargs)
-        self._readout.value = f"deconvolved with {params.method}, reg {float(params.reg):.3g}"
+                   scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]),
+                   **({} if out.ndim == 3 else {"contrast_limits": limits}))
+        in_lo, in_hi = float(np.min(image)), float(np.max(image))
+        out_lo, out_hi = float(np.min(out)), float(np.max(out))
+        span = max(in_hi - in_lo, 1e-12)
+        text = (f"deconvolved with {params.method}, reg {float(params.reg):.3g}; values {out_lo:.4g} to "
+                f"{out_hi:.4g} (input {in_lo:.4g} to {in_hi:.4g})")
+        if out_lo < in_lo - 0.05 * span or out_hi > in_hi + 0.05 * span:
+            warning = ("warning: the result leaves the input's range (ringing or noise amplification); "
+                       "try a larger regularisation")
+            text += "\n" + warning
+            notify_info(f"deconvolution: {warning}")
+        self._readout.value = text

@@ -15,19 +15,20 @@ read-out. "Write report" writes ``report.html`` and the JSON/TIFF files with
 
 from __future__ import annotations
 
-import threading
 import webbrowser
+from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import Container, FileEdit, PushButton, SpinBox, create_widget
+from magicgui.widgets import ComboBox, Container, FileEdit, PushButton, create_widget
 
 from ..core.diagnosis import DiagnosisOptions, DiagnosisResult, diagnose_scene, multiscale_maps
 from ..core.errors import ParameterError
 from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
-from ._common import WorkCancelled, guarded, notify_info, readout_label, run_in_worker, show_layer
+from ._common import (JobPanel, guarded, notify_info, param_widget, readout_label, remove_layer,
+                      restore_defaults_button, run_in_worker, show_layer)
 
 if TYPE_CHECKING:
     import napari
@@ -37,6 +38,8 @@ BINNED_Z_LIMITS = (-3.0, 3.0)
 #: Block size of the binned residual maps (unit variance under the null, like the per-pixel
 #: ones), where smooth mismatch such as glare or vignetting stands out of the noise.
 BINNED_BLOCK = 4
+#: Points layer whose text labels the before and after maps on the canvas.
+MAP_LABELS = "residual map labels"
 
 
 def summary_text(result: DiagnosisResult) -> str:
@@ -63,28 +66,54 @@ class DiagnosisWidget(Container):
 
     def __init__(self, viewer: napari.viewer.Viewer):
         self._viewer = viewer
-        self._recording = create_widget(annotation="napari.layers.Image", label="recording")
-        self._scene_file = FileEdit(mode="r", filter="*.toml", label="scene file")
+        self._recording = ComboBox(choices=self._single_channel_layers, label="recording",
+                                   tooltip="the recorded radiograph in linear counts (DN), one channel "
+                                           "(colour layers are not offered)")
+        self._scene_file = FileEdit(mode="r", filter="*.toml", label="scene file",
+                                    tooltip="the scene the recording should show (geometry, object, source, "
+                                            "noise); without a file, the recording layer's own scene table")
         self._thickness = create_widget(annotation="napari.layers.Image | None", label="or thickness layer")
-        self._max_terms = SpinBox(value=4, min=1, max=10, label="max added terms")
-        self._run = PushButton(text="Diagnose")
-        self._cancel = PushButton(text="Cancel", enabled=False)
+        self._thickness.tooltip = "object thickness map (mm) of the scene when no scene file is given"
+        self._max_terms = param_widget(DiagnosisOptions, "max_terms", label="max added effects")
+        self._run = PushButton(text="Diagnose", tooltip="fit the scene to the recording and name the effects "
+                                                        "the scene leaves out")
+        self._job = JobPanel(tooltip="stop the diagnosis at its next step")
+        self._cancel = self._job.cancel_button
         self._readout = readout_label()
-        self._report_dir = FileEdit(mode="d", label="report folder", value="diagnosis_report")
-        self._write = PushButton(text="Write report", enabled=False)
-        self._open = PushButton(text="Open report", enabled=False)
+        self._report_dir = FileEdit(mode="d", label="report folder", value="diagnosis_report",
+                                    tooltip="folder report.html and its JSON/TIFF files are written to")
+        self._write = PushButton(text="Write report", enabled=False, tooltip="write report.html, diagnosis.json "
+                                                                             "and the residual maps")
+        self._open = PushButton(text="Open report", enabled=False, tooltip="show report.html in the web browser")
+        self._restore = restore_defaults_button(lambda: setattr(self._max_terms, "value",
+                                                                DiagnosisOptions().max_terms))
         super().__init__(widgets=[self._recording, self._scene_file, self._thickness, self._max_terms, self._run,
-                                  self._cancel, self._readout, self._report_dir, self._write, self._open])
+                                  *self._job.widgets, self._readout, self._report_dir, self._write, self._open,
+                                  self._restore])
         self.result: DiagnosisResult | None = None
         self.report_paths: dict[str, Path] = {}
-        self._cancel_event = threading.Event()
         self._inputs: list[Path] = []
+        self._input_names: list[str] = []
         self._recording.changed.connect(self._recording_chosen)
         self._run.changed.connect(self.run)
-        self._cancel.changed.connect(self._cancel_event.set)
         self._write.changed.connect(self.write)
         self._open.changed.connect(self.open_report)
+        viewer.layers.events.inserted.connect(self._reset_recording_choices)
+        viewer.layers.events.removed.connect(self._reset_recording_choices)
         self._recording_chosen()
+
+    def _single_channel_layers(self, *_args) -> list:
+        """Image layers holding one 2-D channel (the diagnosis' recording)."""
+        from napari.layers import Image
+
+        return [(layer.name, layer) for layer in self._viewer.layers
+                if isinstance(layer, Image) and not layer.rgb and np.ndim(layer.data) == 2]
+
+    def _reset_recording_choices(self, *_args) -> None:
+        try:
+            self._recording.reset_choices()
+        except RuntimeError:  # widget already deleted while napari tears down
+            pass
 
     def _recording_chosen(self, *_args) -> None:
         layer = self._recording.value
@@ -100,6 +129,7 @@ class DiagnosisWidget(Container):
         if path and Path(path).is_file():
             scene = load_scene(path)
             self._inputs = [Path(path)] + ([scene.thickness_path] if scene.thickness_path else [])
+            self._input_names = [str(p) for p in self._inputs]
             return scene
         recording = self._recording.value
         table = None if recording is None else recording.metadata.get("scene_table")
@@ -108,6 +138,7 @@ class DiagnosisWidget(Container):
         if thickness_layer is None:
             raise ParameterError("choose the thickness layer of the scene")
         self._inputs = []
+        self._input_names = [f"scene table of layer '{recording.name}'", f"thickness layer '{thickness_layer.name}'"]
         return parse_scene(table, source=f"{recording.name} scene", thickness=np.asarray(thickness_layer.data))
 
     @guarded("diagnosis")
@@ -122,22 +153,21 @@ class DiagnosisWidget(Container):
                                  f"got shape {recording.shape}")
         scene = self.scene()
         options = DiagnosisOptions(max_terms=int(self._max_terms.value))
-        self._cancel_event.clear()
-        cancel = self._cancel_event
-
-        def progress(_message: str) -> None:
-            if cancel.is_set():
-                raise WorkCancelled("diagnosis cancelled")
-
-        self._run.enabled, self._cancel.enabled = False, True
+        self._input_names.insert(0, f"recording layer '{layer.name}' ({recording.shape[1]}x{recording.shape[0]} px)")
+        self._run.enabled = False
         self._readout.value = "diagnosing..."
-        return run_in_worker(diagnose_scene, scene, recording, options, progress=progress, desc="mismatch diagnosis",
-                             on_returned=lambda result: self._show(layer, result), on_finished=self._done)
+        return run_in_worker(diagnose_scene, scene, recording, options, progress=self._job.callback,
+                             desc="mismatch diagnosis", on_returned=lambda result: self._show(layer, result),
+                             on_finished=self._done, panel=self._job, readout=self._readout)
+
+    def cancel(self) -> None:
+        """Stop the diagnosis at its next step (the Cancel button)."""
+        self._job.cancel()
 
     def _done(self) -> None:
-        self._run.enabled, self._cancel.enabled = True, False
+        self._run.enabled = True
         if self._readout.value.endswith("..."):
-            self._readout.value = "diagnosis cancelled or failed (see notifications)"
+            self._readout.value = self._job.status.value
 
     def _show(self, layer, result: DiagnosisResult) -> None:
         self.result = result
@@ -149,13 +179,25 @@ class DiagnosisWidget(Container):
         binned_scale = tuple(scale * result.binning * block)
         binned_translate = tuple(np.asarray(layer.translate[-2:], float)
                                  + scale * (result.binning * block - 1) / 2.0)
-        for z, stage in ((result.z_base, "base model"), (result.z_final, "final model")):
+        # Before (base model) over the recording, after (final model) beside it, both shown
+        # and labelled on the canvas.
+        width = float(np.shape(layer.data)[1]) * scale[1]
+        beside = np.array([0.0, width * 1.05])
+        for z, stage, shift in ((result.z_base, "base model", 0.0 * beside), (result.z_final, "final model", beside)):
             show_layer(self._viewer, z, f"residual z ({stage})", "image", colormap="bwr", contrast_limits=Z_LIMITS,
-                       scale=z_scale, translate=z_translate, visible=False)
+                       scale=z_scale, translate=tuple(np.asarray(z_translate) + shift), visible=False)
             binned = multiscale_maps(z, result.mask, scales=(block,))[block]
             show_layer(self._viewer, binned, f"residual z {block}x{block} ({stage})", "image", colormap="bwr",
-                       contrast_limits=BINNED_Z_LIMITS, scale=binned_scale, translate=binned_translate,
-                       visible=stage == "final model")
+                       contrast_limits=BINNED_Z_LIMITS, scale=binned_scale,
+                       translate=tuple(np.asarray(binned_translate) + shift), visible=True)
+        top_left = np.asarray(layer.translate[-2:], float) - scale * 0.5
+        labels = np.array([top_left, top_left + beside])
+        remove_layer(self._viewer, MAP_LABELS)
+        added = ", ".join(term.effect.replace("_", " ") for term in result.added) or "nothing found"
+        self._viewer.add_points(labels, name=MAP_LABELS, size=0, features={"what": [
+            "before (scene as given)", f"after (+ {added})"]},
+            text={"string": "{what}", "color": "yellow", "size": 10, "anchor": "lower_left",
+                  "translation": [-0.1 * width, 0.0]})
         rectangles = [np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float) - 0.5
                       for r0, c0, r1, c1 in result.regions]
         name = "mismatch regions"
@@ -169,16 +211,27 @@ class DiagnosisWidget(Container):
         self._write.enabled = True
 
     @guarded("diagnosis report")
-    def write(self) -> dict[str, Path] | None:
-        """Write the report files into the chosen folder."""
+    def write(self):
+        """Write the report files into the chosen folder (in a worker: the figures take a
+        second); return the worker."""
         if self.result is None:
             raise ParameterError("run the diagnosis first")
         folder = Path(self._report_dir.value)
-        self.report_paths = write_report(self.result, folder, inputs=self._inputs,
-                                         parameters={"max_terms": int(self._max_terms.value)})
+        self._write.enabled = False
+        return run_in_worker(write_report, self.result, folder, inputs=list(self._inputs),
+                             input_names=list(self._input_names),
+                             created=datetime.now().astimezone().isoformat(timespec="seconds"),
+                             parameters={"max_terms": int(self._max_terms.value)}, desc="diagnosis report",
+                             on_returned=lambda paths: self._written(folder, paths), on_finished=self._write_done,
+                             panel=self._job, readout=self._readout)
+
+    def _written(self, folder: Path, paths: dict[str, Path]) -> None:
+        self.report_paths = paths
         self._open.enabled = True
         notify_info(f"diagnosis report written to {folder}")
-        return self.report_paths
+
+    def _write_done(self) -> None:
+        self._write.enabled = self.result is not None
 
     @guarded("open report")
     def open_report(self) -> bool:

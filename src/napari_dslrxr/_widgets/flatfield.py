@@ -14,12 +14,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import CheckBox, Container, FileEdit, FloatSpinBox, PushButton, create_widget
+from magicgui.widgets import CheckBox, Container, FileEdit, PushButton, create_widget
 
 from ..core.errors import ParameterError
 from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
 from ..core.io import read_image
-from ._common import debounced, guarded, notify_error, readout_label, run_in_worker, same_geometry, show_layer
+from ._common import (JobPanel, debounced, guarded, notify_error, param_widget, readout_label, remove_layer,
+                      restore_defaults_button, run_in_worker, same_geometry, show_layer)
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -48,28 +49,44 @@ class FlatFieldWidget(Container):
     def __init__(self, viewer: napari.viewer.Viewer):
         self._viewer = viewer
         self._image = create_widget(annotation="napari.layers.Image", label="radiograph")
+        self._image.tooltip = "the radiograph to correct (camera counts, as captured)"
         self._flat = create_widget(annotation="napari.layers.Image | None", label="flat (open beam)")
+        self._flat.tooltip = ("open-beam frame: X-rays on, nothing in the beam, same camera settings; "
+                              "corrects uneven screen brightness and lens vignetting")
         self._dark = create_widget(annotation="napari.layers.Image | None", label="dark (optional)")
-        self._flat_file = FileEdit(mode="r", label="or flat file", filter="*.tif *.tiff *.dcm *.dng *.cr2 *.nef *.arw")
-        self._dark_file = FileEdit(mode="r", label="or dark file", filter="*.tif *.tiff *.dcm *.dng *.cr2 *.nef *.arw")
-        defaults = FlatFieldParams()
-        self._smoothing = FloatSpinBox(value=defaults.flat_smoothing_px, min=0.0, max=200.0, step=0.5,
-                                       label="flat smoothing (px)")
-        self._min_fraction = FloatSpinBox(value=defaults.min_flat_fraction, min=0.0, max=1.0, step=0.01,
-                                          label="min flat fraction")
-        self._clean = CheckBox(value=defaults.clean_flat_pulses, label="clean pulses in flat/dark")
-        self._preview = CheckBox(value=False, label="live preview")
-        self._apply = PushButton(text="Apply flat field")
+        self._dark.tooltip = "dark frame: X-rays off, same exposure; removes the camera's black level"
+        filters = "*.tif *.tiff *.dcm *.dng *.cr2 *.nef *.arw"
+        self._flat_file = FileEdit(mode="r", label="or flat file", filter=filters,
+                                   tooltip="read the flat frame from a file (added as a hidden layer)")
+        self._dark_file = FileEdit(mode="r", label="or dark file", filter=filters,
+                                   tooltip="read the dark frame from a file (added as a hidden layer)")
+        self._smoothing = param_widget(FlatFieldParams, "flat_smoothing_px", label="flat smoothing (px)",
+                                       section="flatfield", step=0.5)
+        self._min_fraction = param_widget(FlatFieldParams, "min_flat_fraction", label="min flat fraction",
+                                          section="flatfield")
+        self._clean = param_widget(FlatFieldParams, "clean_flat_pulses", label="clean pulses in flat/dark",
+                                   section="flatfield")
+        self._preview = CheckBox(value=False, label="live preview",
+                                 tooltip="recompute '<radiograph> flat-fielded (preview)' on every change; "
+                                         "off removes the preview layer")
+        self._apply = PushButton(text="Apply flat field",
+                                 tooltip="correct the radiograph: (R - D) / (F - D) x mean(F - D); "
+                                         "adds '<radiograph> flat-fielded'")
+        self._restore = restore_defaults_button(lambda: self.set_params(FlatFieldParams()))
+        self._job = JobPanel()
         self._readout = readout_label()
         super().__init__(widgets=[self._image, self._flat, self._flat_file, self._dark, self._dark_file,
                                   self._smoothing, self._min_fraction, self._clean, self._preview,
-                                  self._apply, self._readout])
+                                  self._apply, *self._job.widgets, self._readout, self._restore])
         self._extra: dict = {}
         self.result: np.ndarray | None = None
         self._worker = None
+        self._preview_layer: str | None = None
         self._flat_file.changed.connect(lambda: self._load_file(self._flat_file.value, self._flat, "flat"))
         self._dark_file.changed.connect(lambda: self._load_file(self._dark_file.value, self._dark, "dark"))
         self._apply.changed.connect(self.run)
+        self._preview.changed.connect(self._preview_toggled)
+        self._image.changed.connect(self._drop_preview)
         self._debounced_preview = debounced(self, self._preview_if_on, _DEBOUNCE_MS)
         for widget in (self._image, self._flat, self._dark, self._smoothing, self._min_fraction,
                        self._clean, self._preview):
@@ -107,34 +124,68 @@ class FlatFieldWidget(Container):
         combo.value = layer
 
     # -- actions ---------------------------------------------------------------------------------
+    def _preview_toggled(self, on: bool) -> None:
+        if not on:
+            self._drop_preview()
+
+    def _drop_preview(self, *_args) -> None:
+        """Remove the preview layer (preview turned off, or another radiograph chosen)."""
+        if self._preview_worker_running():
+            self._worker.quit()
+        if self._preview_layer is not None:
+            remove_layer(self._viewer, self._preview_layer)
+            self._preview_layer = None
+
+    def _preview_worker_running(self) -> bool:
+        return self._worker is not None and not getattr(self._worker, "dslrxr_finished", True)
+
     def _preview_if_on(self) -> None:
         if self._preview.value and self._image.value is not None and self._flat.value is not None:
-            self.run()
+            self._start(preview=True)
 
     @guarded("flat field")
     def run(self):
         """Correct the radiograph in a thread worker; return the worker (None if not started)."""
+        return self._start(preview=False)
+
+    def _start(self, *, preview: bool):
         layer = self._image.value
         if layer is None:
             raise ParameterError("choose the radiograph layer")
         if self._flat.value is None:
             raise ParameterError("choose a flat (open-beam) layer or file")
-        if self._worker is not None and not getattr(self._worker, "dslrxr_finished", True):
+        if self._preview_worker_running():
             self._worker.quit()  # superseded by newer parameters; its result is ignored
         image = np.asarray(layer.data)
         flat = np.asarray(self._flat.value.data)
         dark = None if self._dark.value is None else np.asarray(self._dark.value.data)
         params = self.get_params()
+        if preview:
+            worker = run_in_worker(correct_with_layers, image, flat, dark, params, desc="flat field preview",
+                                   progress_bar=False, on_returned=lambda out: self._show(layer, out, True))
+            self._worker = worker
+            return worker
+        self._apply.enabled = False
         self._readout.value = "running..."
-        worker = run_in_worker(correct_with_layers, image, flat, dark, params, desc="flat field",
-                               on_returned=lambda out: self._show(layer, out))
-        self._worker = worker
-        return worker
+        return run_in_worker(correct_with_layers, image, flat, dark, params, desc="flat field",
+                             on_returned=lambda out: self._show(layer, out, False), on_finished=self._done,
+                             panel=self._job, readout=self._readout)
 
-    def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int]) -> None:
+    def _done(self) -> None:
+        self._apply.enabled = True
+        if self._readout.value == "running...":
+            self._readout.value = self._job.status.value
+
+    def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int], preview: bool) -> None:
         corrected, cleaned = out
-        self.result = corrected
-        show_layer(self._viewer, corrected, f"{layer.name} flat-fielded", "image",
+        if preview and not self._preview.value:
+            return  # turned off while it computed
+        name = f"{layer.name} flat-fielded" + (" (preview)" if preview else "")
+        show_layer(self._viewer, corrected, name, "image",
                    rgb=bool(getattr(layer, "rgb", False)) and corrected.ndim == 3, **same_geometry(layer))
-        self._readout.value = (f"corrected {corrected.shape[1]}x{corrected.shape[0]} px; "
-                               f"{cleaned} pulse px cleaned in the reference frames")
+        if preview:
+            self._preview_layer = name
+        else:
+            self.result = corrected
+        self._readout.value = (f"{'preview: ' if preview else ''}corrected {corrected.shape[1]}x{corrected.shape[0]} "
+                               f"px; {cleaned} pulse px cleaned in the reference frames")

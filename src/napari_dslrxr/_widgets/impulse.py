@@ -12,11 +12,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, PushButton, SpinBox, create_widget
+from magicgui.widgets import ComboBox, Container, PushButton, create_widget
 
 from ..core.errors import ParameterError
 from ..core.stages.impulse import ImpulseParams, ImpulseResult, remove_impulses
-from ._common import guarded, readout_label, run_in_worker, same_geometry, show_layer
+from ._common import (JobPanel, guarded, param_widget, readout_label, restore_defaults_button, run_in_worker,
+                      same_geometry, show_layer)
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -48,19 +49,25 @@ class ImpulseWidget(Container):
     def __init__(self, viewer: napari.viewer.Viewer):
         self._viewer = viewer
         self._image = create_widget(annotation="napari.layers.Image", label="image")
+        self._image.tooltip = "the radiograph (grey or colour camera image) to clean of bright pulses (zingers)"
         self._space = ComboBox(choices=["auto", "hsv", "grey"], value="auto", label="colour space",
-                               tooltip="auto: HSV for colour images, grey for grey ones")
-        defaults = ImpulseParams()
+                               tooltip="colour space the pulses are detected in: auto = HSV for colour images, "
+                                       "grey for grey ones; hsv = hue, saturation, value; grey = one channel")
+        names = {"H": "hue", "S": "saturation", "V": "value", "grey": "grey"}
         self._passes = {
-            name: SpinBox(value=getattr(defaults, f"passes_{name.lower()}"), min=0, max=10,
-                          label=f"passes {name}", tooltip=f"detect-and-replace passes on {name}")
+            name: param_widget(ImpulseParams, f"passes_{name.lower()}", label=f"passes on {names[name]}",
+                               section="impulse")
             for name in ("H", "S", "V", "grey")
         }
-        self._window = ComboBox(choices=[3, 5], value=defaults.window_px, label="median window (px)")
-        self._run_button = PushButton(text="Remove impulses")
+        self._window = param_widget(ImpulseParams, "window_px", label="median window (px)", section="impulse")
+        self._run_button = PushButton(text="Remove impulses",
+                                      tooltip="detect the pulses and replace them by the local median; adds "
+                                              "'<image> cleaned' and one pulse-mask layer per channel")
+        self._restore = restore_defaults_button(lambda: self.set_params(ImpulseParams()))
+        self._job = JobPanel()
         self._readout = readout_label()
         super().__init__(widgets=[self._image, self._space, *self._passes.values(), self._window,
-                                  self._run_button, self._readout])
+                                  self._run_button, *self._job.widgets, self._readout, self._restore])
         self._extra: dict = {}
         self.result: ImpulseResult | None = None
         self._run_button.changed.connect(self.run)
@@ -96,14 +103,14 @@ class ImpulseWidget(Container):
         space = self._space.value
         self._run_button.enabled = False
         self._readout.value = "running..."
-        return run_in_worker(remove_impulses, image, params, space=space,
-                             desc="impulse removal", on_returned=lambda r: self._show(layer, r),
-                             on_finished=self._done)
+        return run_in_worker(remove_impulses, image, params, space=space, desc="impulse removal",
+                             on_returned=lambda r: self._show(layer, r), on_finished=self._done,
+                             panel=self._job, readout=self._readout)
 
     def _done(self) -> None:
         self._run_button.enabled = True
         if self._readout.value == "running...":
-            self._readout.value = "failed or cancelled (see notifications)"
+            self._readout.value = self._job.status.value
 
     def _show(self, layer: napari.layers.Image, result: ImpulseResult) -> None:
         self.result = result

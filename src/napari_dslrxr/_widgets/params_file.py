@@ -64,15 +64,19 @@ class ParamsFileWidget(Container):
 
     def __init__(self, viewer: napari.viewer.Viewer):
         self._viewer = viewer
-        self._path = FileEdit(mode="w", filter="*.toml", label="parameter file", value="params.toml")
-        self._load = PushButton(text="Load")
-        self._save = PushButton(text="Save")
+        self._path = FileEdit(mode="w", filter="*.toml", label="parameter file", value="params.toml",
+                              tooltip="the TOML parameter file 'dslrxr run -c FILE' reads")
+        self._load = PushButton(text="Load", tooltip="read the file and set every docked stage widget from it")
+        self._save = PushButton(text="Save", tooltip="write the docked widgets' values as a commented TOML file")
+        self._restore = PushButton(text="Restore defaults",
+                                   tooltip="set every docked stage widget back to the default parameters")
         self._readout = readout_label()
         self._readout.value = "sections: none loaded (defaults)"
-        super().__init__(widgets=[self._path, self._load, self._save, self._readout])
+        super().__init__(widgets=[self._path, self._load, self._save, self._readout, self._restore])
         self.params: PipelineParams = PipelineParams()
         self._load.changed.connect(self.load)
         self._save.changed.connect(self.save)
+        self._restore.changed.connect(self.restore_defaults)
 
     def _chosen(self) -> Path:
         path = Path(self._path.value) if self._path.value else None
@@ -101,3 +105,11 @@ class ParamsFileWidget(Container):
         self._readout.value = f"saved {written.name} (use: dslrxr run -c {written.name} ...)"
         notify_info(f"parameters saved to {written}")
         return written
+
+    @guarded("restore defaults")
+    def restore_defaults(self) -> list[str]:
+        """Every docked stage widget back to the defaults (the file is not touched)."""
+        self.params = PipelineParams()
+        sections = distribute_params(self._viewer, self.params)
+        self._readout.value = "defaults restored: " + (", ".join(sections) or "no stage widgets docked")
+        return sections

@@ -13,23 +13,25 @@ and the blur kernel at the chosen image's geometry as the image layer ``"PSF ker
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, FileEdit, FloatSpinBox, PushButton, create_widget
+from magicgui.widgets import ComboBox, Container, FileEdit, PushButton, create_widget
 
-from ..core.psf.edge_fit import EdgeImage, fit_edges
+from ..core.psf.edge_fit import EdgeFitSettings, EdgeImage, fit_edges
 from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
-from ._common import WorkCancelled, guarded, notify_info, readout_label, run_in_worker, show_layer
+from ._common import (JobPanel, guarded, notify_info, param_tooltip, param_widget, readout_label,
+                      restore_defaults_button, run_in_worker, show_layer)
 
 if TYPE_CHECKING:
     import napari
 
 SOD_KEY, SDD_KEY = "source_to_object_mm", "source_to_detector_mm"
 SHAPES = {"exponential (p = 1, SABER)": 1.0, "Gaussian (p = 2)": 2.0}
+#: Smallest ROI side the fit takes (the core's minimum).
+MIN_ROI_PX = 16
 
 
 def roi_layer_name(image_name: str) -> str:
@@ -41,20 +43,53 @@ def rectangles_to_rois(shapes: napari.layers.Shapes, image: napari.layers.Image)
     """Pixel ROIs ``(r0, c0, r1, c1)`` (end exclusive) of the rectangles of ``shapes`` over ``image``.
 
     Vertices go through world coordinates, so ROI layers with another scale or translation
-    than the image still land on the right pixels; each ROI is clipped to the image.
+    than the image still land on the right pixels; each ROI is clipped to the image. An ROI
+    smaller than :data:`MIN_ROI_PX` (after clipping) is refused with a message naming it.
     """
     h, w = np.shape(image.data)[:2]
     rois = []
+    number = 0
     for vertices, kind in zip(shapes.data, shapes.shape_type, strict=True):
         if kind not in ("rectangle", "polygon"):
             continue
+        number += 1
         points = np.array([image.world_to_data(shapes.data_to_world(v)) for v in np.asarray(vertices)])[:, -2:]
         lo, hi = points.min(axis=0), points.max(axis=0)
         r0, c0 = (int(np.clip(np.floor(v + 0.5), 0, n)) for v, n in zip(lo, (h, w), strict=True))
         r1, c1 = (int(np.clip(np.floor(v + 0.5), 0, n)) for v, n in zip(hi, (h, w), strict=True))
-        if r1 - r0 >= 8 and c1 - c0 >= 8:
-            rois.append((r0, c0, r1, c1))
+        if r1 - r0 < MIN_ROI_PX or c1 - c0 < MIN_ROI_PX:
+            raise ParameterError(f"ROI {number} on '{image.name}' is {c1 - c0}x{r1 - r0} px inside the image; "
+                                 f"draw it at least {MIN_ROI_PX}x{MIN_ROI_PX} px, across one edge")
+        rois.append((r0, c0, r1, c1))
     return rois
+
+
+def _with_sd(value: float, sd: float | None, unit: str = "") -> str:
+    """``value ± sd unit``, or "not determined" when the uncertainty exceeds the value."""
+    if sd is not None and np.isfinite(sd) and sd > abs(value):
+        return f"not determined by these ROIs ({value:.3g} ± {sd:.2g}{unit})"
+    return f"{value:.3g}" + (f" ± {sd:.2g}" if sd is not None and np.isfinite(sd) else "") + unit
+
+
+def fit_summary(model: PSFModel) -> str:
+    """The read-out of a fit: what was fitted, with uncertainties, and what was not."""
+    unc, report = model.uncertainty, model.fit_report
+    lines = []
+    if report.get("source_fitted", True):
+        lines.append(f"focal spot FWHM x, y: {_with_sd(model.source_fwhm_x_mm, unc.get('source_fwhm_x_mm'))}, "
+                     f"{_with_sd(model.source_fwhm_y_mm, unc.get('source_fwhm_y_mm'), ' mm')}")
+        detector = "detector"
+    else:
+        lines.append("focal spot: not fitted (all ROIs at one source-object distance; add ROIs on an image at "
+                     "another distance to separate it)")
+        detector = "combined blur (focal spot + detector)"
+    lines.append(f"{detector} core FWHM: {_with_sd(model.detector_fwhm_core_mm, unc.get('detector_fwhm_core_mm'), ' mm')}")
+    lines.append(f"{detector} tail FWHM: {_with_sd(model.detector_fwhm_tail_mm, unc.get('detector_fwhm_tail_mm'), ' mm')}")
+    lines.append(f"core weight: {_with_sd(model.detector_weight_core, unc.get('detector_weight_core'))}")
+    lines.append(f"residual rms {report.get('residual_rms', float('nan')):.3g} "
+                 f"(noise {report.get('noise_rms_estimate', float('nan')):.3g}), "
+                 f"{report.get('n_images', 0)} ROIs, {report.get('fit_time_s', 0):.1f} s")
+    return "\n".join(lines)
 
 
 def grey(data: np.ndarray) -> np.ndarray:
@@ -69,34 +104,49 @@ class PSFEdgeWidget(Container):
     def __init__(self, viewer: napari.viewer.Viewer):
         self._viewer = viewer
         self._image = create_widget(annotation="napari.layers.Image", label="edge image")
-        self._sod = FloatSpinBox(value=1000.0, min=1.0, max=1e5, step=10.0, label="source-object (mm)")
-        self._sdd = FloatSpinBox(value=1100.0, min=1.0, max=1e5, step=10.0, label="source-detector (mm)")
-        self._draw = PushButton(text="Draw ROIs on this image")
-        self._pitch = FloatSpinBox(value=0.1, min=1e-4, max=100.0, step=0.01, label="pixel pitch (mm)")
-        self._shape = ComboBox(choices=list(SHAPES), value=next(iter(SHAPES)), label="profile")
-        self._fit = PushButton(text="Fit PSF")
-        self._cancel = PushButton(text="Cancel fit", enabled=False)
-        self._path = FileEdit(mode="w", filter="*.json", label="save as", value="psf.json")
-        self._save = PushButton(text="Save psf.json", enabled=False)
+        self._image.tooltip = ("a radiograph of a straight, opaque edge (e.g. a tungsten or lead plate); "
+                               "its distances are kept with the layer")
+        self._sod = param_widget(EdgeFitSettings, "source_to_object_mm", label="source-object (mm)", step=10.0)
+        self._sdd = param_widget(EdgeFitSettings, "source_to_detector_mm", label="source-detector (mm)", step=10.0)
+        self._draw = PushButton(text="Draw ROIs on this image",
+                                tooltip="adds (or selects) the shapes layer '<image> ROIs' in rectangle mode: "
+                                        "drag one rectangle across each straight edge")
+        self._pitch = param_widget(EdgeFitSettings, "pixel_pitch_mm", label="pixel pitch (mm)", step=0.01)
+        self._shape = ComboBox(choices=list(SHAPES), value=next(iter(SHAPES)), label="profile",
+                               tooltip=param_tooltip(EdgeFitSettings, "shape_power", label="profile"))
+        self._fit = PushButton(text="Fit PSF",
+                               tooltip="fit focal spot and detector blur to every ROI of every image jointly")
+        self._job = JobPanel(cancel_text="Cancel fit", tooltip="stop the fit at its next iteration")
+        self._cancel = self._job.cancel_button
+        self._path = FileEdit(mode="w", filter="*.json", label="save as", value="psf.json",
+                              tooltip="file the fitted PSF model is written to (for the Deconvolution widget "
+                                      "and 'dslrxr run --psf')")
+        self._save = PushButton(text="Save psf.json", enabled=False, tooltip="write the fitted model to the file above")
+        self._restore = restore_defaults_button(self.restore_defaults)
         self._status = readout_label()
         self._readout = readout_label()
         super().__init__(widgets=[self._image, self._sod, self._sdd, self._draw, self._pitch, self._shape,
-                                  self._status, self._fit, self._cancel, self._readout, self._path, self._save])
+                                  self._status, self._fit, *self._job.widgets, self._readout, self._path,
+                                  self._save, self._restore])
         self.model: PSFModel | None = None
         self.edges_used: list[tuple[str, tuple[int, int, int, int]]] = []
-        self._cancel_event = threading.Event()
-        self._worker = None
         self._figure, self._canvas = self._make_plot()
         self._image.changed.connect(self._image_chosen)
         self._sod.changed.connect(self._store_distances)
         self._sdd.changed.connect(self._store_distances)
         self._draw.changed.connect(self.roi_layer)
         self._fit.changed.connect(self.run)
-        self._cancel.changed.connect(self.cancel)
         self._save.changed.connect(self.save)
         viewer.layers.events.inserted.connect(self._refresh_status)
         viewer.layers.events.removed.connect(self._refresh_status)
         self._image_chosen()
+
+    def restore_defaults(self) -> None:
+        """Pixel pitch and profile back to their defaults. The distances describe the chosen
+        image (kept with its layer), not a preference, and stay."""
+        defaults = EdgeFitSettings()
+        self._pitch.value = defaults.pixel_pitch_mm
+        self._shape.value = next(name for name, power in SHAPES.items() if power == defaults.shape_power)
 
     # -- the profile plot ----------------------------------------------------------------------------
     def _make_plot(self):
@@ -109,7 +159,9 @@ class PSFEdgeWidget(Container):
 
         figure = Figure(figsize=(4.0, 2.6), dpi=80, tight_layout=True)
         canvas = FigureCanvasQTAgg(figure)
-        canvas.setMinimumHeight(200)
+        # Fixed height: a read-out changing its number of lines must not resize the canvas,
+        # which would redraw the whole figure on the GUI thread (100 ms or more).
+        canvas.setFixedHeight(210)
         self.native.layout().addWidget(canvas)
         return figure, canvas
 
@@ -191,7 +243,7 @@ class PSFEdgeWidget(Container):
             data = grey(layer.data)
             for k, roi in enumerate(rois):
                 edges.append(EdgeImage(image=data, source_to_object_mm=float(sod), source_to_detector_mm=float(sdd),
-                                       roi=roi, name=f"{layer.name} #{k + 1}"))
+                                       roi=roi, name=f"ROI {k + 1} on '{layer.name}'"))
                 used.append((layer.name, roi))
         self.edges_used = used
         return edges
@@ -221,47 +273,25 @@ class PSFEdgeWidget(Container):
         if not edges:
             raise ParameterError("draw at least one rectangle around an edge (press 'Draw ROIs')")
         pitch, power = float(self._pitch.value), SHAPES[self._shape.value]
-        self._cancel_event.clear()
-        cancel = self._cancel_event
-
-        def progress(done: int, total: int) -> None:
-            if cancel.is_set():
-                raise WorkCancelled("PSF fit cancelled")
-
-        self._fit.enabled, self._cancel.enabled = False, True
+        self._fit.enabled = False
         self._readout.value = f"fitting {len(edges)} edge ROI(s)..."
-        self._worker = run_in_worker(fit_edges, edges, pitch, shape_power=power, progress=progress,
-                                     desc="PSF edge fit", on_returned=self._show, on_finished=self._done)
-        return self._worker
+        return run_in_worker(fit_edges, edges, pitch, shape_power=power, progress=self._job.callback,
+                             desc="PSF edge fit", on_returned=self._show, on_finished=self._done,
+                             panel=self._job, readout=self._readout)
 
     def cancel(self) -> None:
-        """Stop the running fit at its next optimiser iteration."""
-        self._cancel_event.set()
+        """Stop the running fit at its next optimiser iteration (the Cancel button)."""
+        self._job.cancel()
 
     def _done(self) -> None:
-        self._fit.enabled, self._cancel.enabled = True, False
+        self._fit.enabled = True
         if self._readout.value.endswith("..."):
-            self._readout.value = "fit cancelled or failed (see notifications)"
+            self._readout.value = self._job.status.value
 
     def _show(self, model: PSFModel) -> None:
         self.model = model
         self._save.enabled = True
-        unc = model.uncertainty
-
-        def fmt(key: str) -> str:
-            value = getattr(model, key)
-            sd = unc.get(key)
-            return f"{value:.3g}" + (f" ± {sd:.2g}" if sd is not None and np.isfinite(sd) else "")
-
-        report = model.fit_report
-        self._readout.value = "\n".join([
-            f"focal spot FWHM x, y: {fmt('source_fwhm_x_mm')}, {fmt('source_fwhm_y_mm')} mm",
-            f"detector core FWHM: {fmt('detector_fwhm_core_mm')} mm, tail FWHM: {fmt('detector_fwhm_tail_mm')} mm",
-            f"core weight: {fmt('detector_weight_core')}",
-            f"residual rms {report.get('residual_rms', float('nan')):.3g} "
-            f"(noise {report.get('noise_rms_estimate', float('nan')):.3g}), "
-            f"{report.get('n_images', 0)} ROIs, {report.get('fit_time_s', 0):.1f} s",
-        ] + ([report["note"]] if "note" in report else []))
+        self._readout.value = fit_summary(model)
         self.plot_profiles(model)
         self.show_kernel(model)
 

@@ -161,21 +161,48 @@ SECTION_HELP = {
     "batch": "how dslrxr run spreads a batch: process pool or dask.distributed cluster (never changes outputs)",
 }
 
-# Help for A's ImpulseParams fields (its dataclass carries docstrings, not field metadata).
-_IMPULSE_HELP = {
-    "passes_h": "detect-and-replace passes on hue (0 skips; 0 to 10)",
-    "passes_s": "passes on saturation (0 to 10)",
-    "passes_v": "passes on value V = max(R, G, B) (0 to 10)",
-    "passes_grey": "passes on a grey image and on each raw CFA plane (0 to 10)",
-    "window_px": "median window of the first detection, 3 or 5 px",
-    "max_patch_px": "largest pulse patch side grown into, 1 to 8 px",
-    "bright_only": "pulses on photon-counting channels are bright only (direct X-ray hits)",
-    "posterior_threshold": "a pixel is a pulse when its posterior pulse probability exceeds this (0 < t < 1)",
-    "min_saturation": "pixels with saturation below this (0 to 1) are left out of hue filtering",
-    "min_value_fraction": "pixels with V below this fraction of the 99th percentile are left out of hue filtering",
-    "em_samples": "pixels subsampled for the EM fit (>= 1000)",
-    "em_iterations": "maximum EM iterations (1 to 500)",
+# Help, unit and range of ImpulseParams' fields (its dataclass carries docstrings, not field
+# metadata); merged under any metadata the fields do carry by :func:`field_info`.
+_IMPULSE_META = {
+    "passes_h": {"help": "detect-and-replace passes on hue; 0 skips the channel", "unit": "passes", "min": 0, "max": 10},
+    "passes_s": {"help": "detect-and-replace passes on saturation", "unit": "passes", "min": 0, "max": 10},
+    "passes_v": {"help": "detect-and-replace passes on value V = max(R, G, B)", "unit": "passes", "min": 0, "max": 10},
+    "passes_grey": {"help": "detect-and-replace passes on a grey image and on each raw CFA plane",
+                    "unit": "passes", "min": 0, "max": 10},
+    "window_px": {"help": "median window of the first detection: 3 = the 8 neighbours, 5 = the 8 pixels two "
+                          "steps away (finds patches up to 3x3 px)", "unit": "px", "choices": (3, 5)},
+    "max_patch_px": {"help": "largest pulse patch side grown into", "unit": "px", "min": 1, "max": 8},
+    "bright_only": {"help": "pulses on photon-counting channels are bright only (direct X-ray hits)"},
+    "posterior_threshold": {"help": "a pixel is a pulse when its posterior pulse probability exceeds this",
+                            "unit": "probability", "min": 0.0, "max": 1.0},
+    "min_saturation": {"help": "pixels with saturation below this are left out of hue filtering",
+                       "unit": "fraction", "min": 0.0, "max": 1.0},
+    "min_value_fraction": {"help": "pixels with V below this fraction of the 99th percentile are left out of "
+                                   "hue filtering", "unit": "fraction", "min": 0.0, "max": 1.0},
+    "em_samples": {"help": "pixels subsampled for the EM fit", "unit": "px", "min": 1000, "max": 100_000_000},
+    "em_iterations": {"help": "maximum EM iterations", "unit": "iterations", "min": 1, "max": 500},
 }
+
+
+def field_info(cls: type, name: str) -> dict:
+    """Help, unit, range, choices and default of field ``name`` of parameter dataclass ``cls``.
+
+    The one place the TOML comments, the command-line help and the widgets' tooltips and
+    ranges read a parameter's documentation from. Keys: ``help`` (always), ``default``
+    (always), and ``unit``, ``min``, ``max``, ``choices`` when the field declares them.
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    if name not in fields:
+        raise KeyError(f"{cls.__name__} has no field {name!r}")
+    f = fields[name]
+    info = dict(_IMPULSE_META.get(name, {})) if cls.__name__ == "ImpulseParams" else {}
+    info.update(f.metadata or {})
+    info.setdefault("help", name.replace("_", " "))
+    if f.default is not dataclasses.MISSING:
+        info["default"] = f.default
+    elif f.default_factory is not dataclasses.MISSING:
+        info["default"] = f.default_factory()
+    return info
 
 
 def _check_value(section: str, f: dataclasses.Field, value, default):
@@ -320,17 +347,16 @@ def load_params(path: str | os.PathLike) -> PipelineParams:
         raise ParameterError(f"{path}: {exc}") from None
 
 
-def _field_comment(section: str, f: dataclasses.Field) -> str:
-    meta = f.metadata or {}
-    text = meta.get("help") or (_IMPULSE_HELP.get(f.name) if section == "impulse" else None) or f.name
+def _field_comment(cls: type, f: dataclasses.Field) -> str:
+    meta = field_info(cls, f.name)
     bits = []
     if meta.get("unit"):
         bits.append(f"unit: {meta['unit']}")
     if meta.get("min") is not None or meta.get("max") is not None:
         bits.append(f"range {meta.get('min')} to {meta.get('max')}")
     if meta.get("choices"):
-        bits.append("one of " + ", ".join(meta["choices"]))
-    return f"# {text}" + (f" ({'; '.join(bits)})" if bits else "")
+        bits.append("one of " + ", ".join(str(c) for c in meta["choices"]))
+    return f"# {meta['help']}" + (f" ({'; '.join(bits)})" if bits else "")
 
 
 def params_to_toml(params: PipelineParams | None = None, *, comments: bool = True,
@@ -351,7 +377,7 @@ def params_to_toml(params: PipelineParams | None = None, *, comments: bool = Tru
         lines.append(f"[{f.name}]")
         for sf in dataclasses.fields(section):
             if comments:
-                lines.append(_field_comment(f.name, sf))
+                lines.append(_field_comment(type(section), sf))
             lines.append(tomli_w.dumps({sf.name: getattr(section, sf.name)}).strip())
         lines.append("")
     return "\n".join(lines)

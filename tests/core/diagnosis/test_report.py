@@ -59,3 +59,18 @@ def test_report_folder_that_is_a_file_is_a_one_line_error(glare_result, tmp_path
     target.write_text("x")
     with pytest.raises(OutputError):
         write_report(glare_result, target)
+
+
+def test_report_names_its_inputs_and_date_and_scales_its_figures(glare_result, tmp_path):
+    import html as html_module
+
+    paths = write_report(glare_result, tmp_path / "rep", input_names=["recording layer 'shot 1'", "scene.toml"],
+                         created="2026-11-24T17:00:00+00:00")
+    page = html_module.unescape(paths["report"].read_text(encoding="utf-8"))
+    assert "Inputs: recording layer 'shot 1'; scene.toml" in page
+    assert "Created: 2026-11-24T17:00:00+00:00" in page
+    assert "img{max-width:100%;height:auto}" in page
+    # Without a date the page depends on the inputs only (same bytes twice).
+    a = write_report(glare_result, tmp_path / "a", input_names=["x"])["report"].read_bytes()
+    b = write_report(glare_result, tmp_path / "b", input_names=["x"])["report"].read_bytes()
+    assert a == b and b"Created" not in a

@@ -248,3 +248,16 @@ def test_sub_step_core_keeps_its_weight_against_the_tail():
     a = synthesize_edge_image(tiny, 100.0, 200.0, (3, 201), 0.0, supersample=1)
     b = synthesize_edge_image(delta, 100.0, 200.0, (3, 201), 0.0, supersample=1)
     np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_roi_without_an_edge_is_named_not_an_internal_error():
+    """Noise alone (no edge) is refused with the ROI's name, before the fit."""
+    rng = np.random.default_rng(5)
+    truth = PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.4, source_fwhm_y_mm=0.4, detector_fwhm_core_mm=0.15,
+                     detector_fwhm_tail_mm=1.0, detector_weight_core=0.9)
+    edge = rng.poisson(synthesize_edge_image(truth, 500.0, 1000.0, (64, 64), 3.0) * 4000.0).astype(np.float32)
+    flat = rng.poisson(np.full((64, 64), 4000.0)).astype(np.float32)
+    edges = [EdgeImage(image=edge, source_to_object_mm=500.0, source_to_detector_mm=1000.0, name="ROI 1"),
+             EdgeImage(image=flat, source_to_object_mm=900.0, source_to_detector_mm=1000.0, name="ROI 2")]
+    with pytest.raises(InputError, match=r"^ROI 2: no edge found"):
+        fit_edges(edges, 0.1)

@@ -89,7 +89,8 @@ class DiagnosisOptions:
     """
 
     accept_delta_bic: float = 10.0
-    max_terms: int = 4
+    max_terms: int = field(default=4, metadata={
+        "help": "at most this many effects are added to the scene model", "unit": "terms", "min": 1, "max": 10})
     tile_px: int = 32
     heldout_block_px: int = 32
     max_fit_size_px: int = 512

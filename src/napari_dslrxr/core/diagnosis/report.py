@@ -108,8 +108,14 @@ def _write_text(path: Path, text: str, inputs: Iterable) -> Path:
     return io.atomic_write(path, _write, inputs=inputs)
 
 
-def render_html(result: DiagnosisResult, title: str = "dslrxr mismatch diagnosis") -> str:
-    """The self-contained report page (plots as base64 PNG)."""
+def render_html(result: DiagnosisResult, title: str = "dslrxr mismatch diagnosis", *,
+                input_names: Iterable[str] = (), created: str | None = None) -> str:
+    """The self-contained report page (plots as base64 PNG, scaled to the page width).
+
+    ``input_names`` (files or layers) and ``created`` (a date the caller gives, so a report
+    written twice from the same inputs stays byte-identical unless a date is asked for) are
+    listed under the title.
+    """
     maps_b64 = base64.b64encode(residual_maps_figure(result)).decode("ascii")
     prof_b64 = base64.b64encode(profiles_figure(result)).decode("ascii")
     rows = []
@@ -126,11 +132,16 @@ def render_html(result: DiagnosisResult, title: str = "dslrxr mismatch diagnosis
     for i, ranking in enumerate(result.rankings):
         top = ", ".join(f"{r['effect']} (S {r['score']:.1f}, ΔBIC≈{r['delta_bic_est']:.1f})" for r in ranking[:5])
         ranking_rows.append(f"<li>round {i + 1}: {html.escape(top)}</li>")
+    names = [str(n) for n in input_names]
+    about = (f"<p>Inputs: {html.escape('; '.join(names)) if names else 'not recorded'}"
+             + (f"<br>Created: {html.escape(created)}" if created else "") + "</p>")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:1em auto}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #999;padding:3px 6px;font-size:90%;vertical-align:top}}</style></head><body>
+td,th{{border:1px solid #999;padding:3px 6px;font-size:90%;vertical-align:top}}
+img{{max-width:100%;height:auto}}</style></head><body>
 <h1>{html.escape(title)}</h1>
+{about}
 <p><b>{html.escape(result.message)}</b></p>
 <p>Base model: χ²/dof {result.base_chi2_per_dof:.4f}, BIC {result.base_bic:.1f}; final χ²/dof
 {result.final_chi2_per_dof:.4f}; {result.n_pixels} pixels fitted (binning {result.binning}×).
@@ -148,10 +159,14 @@ Unexplained: {'yes, at ' + str(result.unexplained_regions) if result.unexplained
 
 
 def write_report(result: DiagnosisResult, out_dir: str | os.PathLike, *, inputs: Iterable = (),
-                 parameters: dict | None = None, timings_s: dict | None = None) -> dict[str, Path]:
+                 parameters: dict | None = None, timings_s: dict | None = None,
+                 input_names: Iterable[str] | None = None, created: str | None = None) -> dict[str, Path]:
     """Write ``diagnosis.json``, ``diagnosis_details.json``, ``residual_base.tif``,
     ``residual_final.tif`` (float32 normalised residuals z) and ``report.html`` into ``out_dir``,
-    each with a provenance sidecar. Returns the paths by name."""
+    each with a provenance sidecar. Returns the paths by name.
+
+    The page names ``input_names`` (default: the ``inputs`` files) and the date ``created``
+    when given (without it the bytes depend on the inputs only)."""
     from ..errors import OutputError
 
     out = Path(out_dir)
@@ -160,6 +175,7 @@ def write_report(result: DiagnosisResult, out_dir: str | os.PathLike, *, inputs:
     except OSError as exc:
         raise OutputError(f"{out}: cannot create the report folder ({exc.strerror})") from None
     inputs = [Path(p) for p in inputs]
+    names = [str(p) for p in inputs] if input_names is None else list(input_names)
     params = parameters or {}
     paths = {
         "diagnosis": _write_text(out / "diagnosis.json", json.dumps(result.to_json(), indent=2) + "\n", inputs),
@@ -169,7 +185,7 @@ def write_report(result: DiagnosisResult, out_dir: str | os.PathLike, *, inputs:
                                        description="normalised residual z, base model", inputs=inputs),
         "residual_final": io.write_tiff(out / "residual_final.tif", result.z_final,
                                         description="normalised residual z, final model", inputs=inputs),
-        "report": _write_text(out / "report.html", render_html(result), inputs),
+        "report": _write_text(out / "report.html", render_html(result, input_names=names, created=created), inputs),
     }
     for name, path in paths.items():
         provenance.write_sidecar(path, stage="diagnose", parameters=params, inputs=inputs,

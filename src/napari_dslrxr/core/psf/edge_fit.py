@@ -88,6 +88,23 @@ _LOG_FWHM_MIN = math.log(1e-3)
 
 
 @dataclass
+class EdgeFitSettings:
+    """The geometry and model choices an edge fit needs beside the images (GUI and config
+    defaults, ranges and help; :func:`fit_edges` takes them as arguments)."""
+
+    source_to_object_mm: float = field(default=1000.0, metadata={
+        "help": "distance from the focal spot to the edge (object)", "unit": "mm", "min": 1.0, "max": 1e5})
+    source_to_detector_mm: float = field(default=1100.0, metadata={
+        "help": "distance from the focal spot to the scintillator screen (detector)", "unit": "mm",
+        "min": 1.0, "max": 1e5})
+    pixel_pitch_mm: float = field(default=0.1, metadata={
+        "help": "size of one image pixel at the screen", "unit": "mm", "min": 1e-4, "max": 100.0})
+    shape_power: float = field(default=1.0, metadata={
+        "help": "profile of the focal-spot and detector blur: 1 = exponential (SABER), 2 = Gaussian",
+        "choices": (1.0, 2.0)})
+
+
+@dataclass
 class EdgeImage:
     """One radiograph of a straight, opaque edge.
 
@@ -338,6 +355,10 @@ def _impulse_mask(y: np.ndarray) -> np.ndarray:
     return ndimage.binary_dilation(excess > 8.0 * sigma, iterations=1)
 
 
+#: Smallest bright-dark step (in pixel-noise sigmas) accepted as an edge.
+EDGE_MIN_STEP_SIGMA = 5.0
+
+
 def _detect_edge(y: np.ndarray, valid: np.ndarray, name: str):
     """Initial straight-edge line: ``(x0, y0, nx, ny)`` through a point with the normal to the bright side."""
     filled = np.where(valid, y, np.nanmedian(y[valid]))
@@ -345,6 +366,12 @@ def _detect_edge(y: np.ndarray, valid: np.ndarray, name: str):
     lo, hi = np.percentile(smooth[valid], [2, 98])
     if not hi - lo > 0:
         raise InputError(name, "no edge found: the region is flat")
+    # Pixel noise (robust, from the residual of a 3x3 median): a region of noise alone spans
+    # about one noise sigma after the smoothing above; an edge worth fitting spans many.
+    noise = 1.4826 * float(np.median(np.abs((filled - ndimage.median_filter(filled, size=3))[valid])))
+    if hi - lo < EDGE_MIN_STEP_SIGMA * noise:
+        raise InputError(name, f"no edge found: the brightness step ({(hi - lo) / noise:.1f} noise sigma) is too "
+                               f"small; draw the ROI across a sharp edge")
     mid = 0.5 * (lo + hi)
     gy = ndimage.sobel(smooth, axis=0)
     gx = ndimage.sobel(smooth, axis=1)
