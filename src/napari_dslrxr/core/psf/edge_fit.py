@@ -64,7 +64,6 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -724,7 +723,6 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
     ParameterError, InputError
         Bad parameters or unusable images (one line naming the image or parameter).
     """
-    started = time.perf_counter()
     if not edges:
         raise ParameterError("fit_edges: no edge images given")
     pitch = float(pixel_pitch_mm)
@@ -878,7 +876,6 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
         "noise_weighted": bool(any(np.ptp(p.weight) > 0 for p in prepared)),
         "source_fitted": bool(fit_source), "source_axes_tied": bool(tie),
         "shape_power": shape_power, "tail_fwhm_max_px": float(tail_fwhm_max_px),
-        "fit_time_s": round(time.perf_counter() - started, 3),
         "edges": edge_reports,
     }
     if not fit_source:
