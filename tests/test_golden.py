@@ -40,8 +40,8 @@ REGENERATE = os.environ.get("DSLRXR_REGEN_GOLDEN") == "1"
 
 #: JSON keys dropped before hashing, and why: run times differ from run to run ("timings_s",
 #: "elapsed_s", "seconds"; "fit_time_s" of older psf.json files); the package and library versions
-#: and the creation date change without any change of results ("version", "versions", "library_versions", "created");
-#: input and output paths name the temporary folder of the test ("path", "inputs", "output",
+#: and the creation date change without any change of results ("version", "versions",
+#: "library_versions", "created"); input and output paths name the temporary folder of the test ("path", "inputs", "output",
 #: "outputs").
 VOLATILE_JSON_KEYS = frozenset({"timings_s", "elapsed_s", "seconds", "fit_time_s", "version", "versions",
                                 "library_versions", "created", "path", "inputs", "output", "outputs"})

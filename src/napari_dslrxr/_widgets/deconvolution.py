@@ -24,6 +24,7 @@ from ..core.stages.deconvolution import (METHODS, DeconvolutionParams, deconvolv
                                   estimate_regularisation)
 from ..core.errors import ParameterError
 from ..core.psf import load_psf
+from ..core.param_fields import field_info
 from ._common import debounced, guarded, readout_label, run_in_worker, show_layer, viewer_camera, visible_region
 from ._registry import register_stage_widget
 
@@ -33,7 +34,10 @@ if TYPE_CHECKING:
 #: Solver used for the live preview of each method: the closed-form ones preview themselves;
 #: the sparse adaptive prior is previewed by the gradient-regularised solve it starts from.
 PREVIEW_METHOD = {"wiener": "wiener", "rls": "rls", "adaptive": "rls"}
-REG_SLIDER_MIN, REG_SLIDER_MAX = 1e-1, 1e6
+#: The slider spans the one valid range of ``reg`` (its field metadata), so every value the
+#: parameter file, the command line or the solver accepts can be set and shown.
+REG_SLIDER_MIN = float(field_info(DeconvolutionParams, "reg")["min"])
+REG_SLIDER_MAX = float(field_info(DeconvolutionParams, "reg")["max"])
 _DEBOUNCE_MS = 60
 
 
@@ -61,7 +65,7 @@ class DeconvolutionWidget(Container):
         self._reg = FloatLogSlider(min=REG_SLIDER_MIN, max=REG_SLIDER_MAX, base=10,
                                    max_pos=200 * round(np.log10(REG_SLIDER_MAX / REG_SLIDER_MIN)),
                                    label="regularisation",
-                                   tooltip="gradient prior precision relative to the noise; larger = smoother")
+                                   tooltip=field_info(DeconvolutionParams, "reg")["help"])
         self._reg.value = 100.0  # after the positions are set, or the value is misplaced
         # magicgui's log-slider read-out shows the slider position, not the value: hide it
         # and show the value in the label instead.
@@ -98,7 +102,7 @@ class DeconvolutionWidget(Container):
 
     # -- parameters (TOML section [deblur]) -----------------------------------------------------
     def get_params(self) -> DeconvolutionParams:
-        return DeconvolutionParams(method=self._method.value, reg=float(self._reg.value)).validate()
+        return DeconvolutionParams(method=self._method.value, reg=float(self._reg.value))
 
     def set_params(self, params: DeconvolutionParams) -> None:
         self._method.value = params.method

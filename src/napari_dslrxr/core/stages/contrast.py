@@ -37,6 +37,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..param_fields import validate_fields
+
 
 @dataclass
 class ContrastParams:
@@ -78,6 +80,9 @@ class ContrastParams:
     halo_step: float = field(default=0.3, metadata={
         "help": "edges with a step above about this keep unit gain (no halo at strong edges); 0 = off",
         "unit": "VOI units", "min": 0.0, "max": 2.0})
+
+    def __post_init__(self) -> None:
+        validate_fields(self, "contrast")
 
 
 def auto_levels(shape: tuple[int, int], coarsest_px: int = 32) -> int:

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError, ParameterError
+from ..param_fields import validate_fields
 
 
 @dataclass
@@ -62,6 +63,9 @@ class FlatFieldParams:
     pulse_threshold_sigma: float = field(default=6.0, metadata={
         "help": "a reference-frame pixel is a pulse when it exceeds its 5x5 median by this many noise sigmas",
         "unit": "sigma", "min": 3.0, "max": 50.0})
+
+    def __post_init__(self) -> None:
+        validate_fields(self, "flatfield")
 
 
 @dataclass
