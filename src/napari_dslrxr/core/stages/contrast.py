@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from ..param_fields import validate_fields
+from ..robust import robust_sigma as _robust_sigma
 
 
 @dataclass
@@ -122,7 +123,7 @@ def robust_sigma(values: np.ndarray) -> float:
     v = np.asarray(values, np.float32).ravel()
     if v.size > 1_000_000:
         v = v[:: v.size // 500_000]
-    return float(1.4826 * np.median(np.abs(v - np.median(v))))
+    return _robust_sigma(v)
 
 
 def map_coefficients(band: np.ndarray, *, gain: float, power: float, max_coef: float,
