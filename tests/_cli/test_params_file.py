@@ -22,18 +22,6 @@ from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 from napari_dslrxr.core.simulation.simulator import phantom_thickness_mm
 from napari_dslrxr.demo import write_edge_radiographs
 
-SCENE = """[geometry]
-source_to_detector_mm = 1200.0
-source_to_object_mm = 1000.0
-pixel_pitch_mm = 0.1
-[object]
-thickness_mm = "thickness.tif"
-material = "aluminium"
-[source]
-kvp = 60
-"""
-
-
 def dslrxr(*args) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *map(str, args)],
                           capture_output=True, text=True, timeout=300)
@@ -63,7 +51,7 @@ def assert_same_refusal(params_file: Path, text: str, file_args: list, option_ar
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory) -> dict[str, Path]:
+def data(tmp_path_factory, phantom_scene_text) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("params_inputs")
     rng = np.random.default_rng(3)
     truth = np.full((80, 80), 0.3)
@@ -77,7 +65,7 @@ def data(tmp_path_factory) -> dict[str, Path]:
     frames = make_dslr_radiograph((96, 128), seed=2)
     edges = write_edge_radiographs(folder, frames.truth.blur_sigma_px, seed=2)
     write_tiff(folder / "thickness.tif", phantom_thickness_mm((64, 64)))
-    (folder / "scene.toml").write_text(SCENE, encoding="utf-8")
+    (folder / "scene.toml").write_text(phantom_scene_text, encoding="utf-8")
     ok("simulate", folder / "scene.toml", "-o", folder / "recording.tif",
        "--effect", "mirror_ghost=epsilon:0.05,shift_mm:0.4", "--seed", "1")
     return {"folder": folder, "edges": edges}

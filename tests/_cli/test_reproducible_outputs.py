@@ -19,18 +19,6 @@ from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 from napari_dslrxr.core.simulation.simulator import phantom_thickness_mm
 from napari_dslrxr.demo import write_edge_radiographs
 
-SCENE = """[geometry]
-source_to_detector_mm = 1200.0
-source_to_object_mm = 1000.0
-pixel_pitch_mm = 0.1
-[object]
-thickness_mm = "thickness.tif"
-material = "aluminium"
-[source]
-kvp = 60
-"""
-
-
 def _dslrxr(*args) -> None:
     proc = subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *map(str, args)],
                           capture_output=True, text=True, timeout=300)
@@ -48,14 +36,14 @@ def _is_sidecar(path: Path) -> bool:
 
 
 @pytest.fixture(scope="module")
-def inputs(tmp_path_factory) -> dict[str, Path]:
+def inputs(tmp_path_factory, phantom_scene_text) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("inputs")
     frames = make_dslr_radiograph((128, 192), seed=1)
     for name, arr in (("radiograph", frames.raw_rgb), ("flat", frames.flat), ("dark", frames.dark)):
         write_tiff(folder / f"{name}.tif", arr)
     edges = write_edge_radiographs(folder, frames.truth.blur_sigma_px, seed=1)
     write_tiff(folder / "thickness.tif", phantom_thickness_mm((64, 64)))
-    (folder / "scene.toml").write_text(SCENE, encoding="utf-8")
+    (folder / "scene.toml").write_text(phantom_scene_text, encoding="utf-8")
     return {"folder": folder, "edges": edges, "scene": folder / "scene.toml"}
 
 
