@@ -40,7 +40,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _harness import peak_rss_mb, record  # noqa: E402
 
-from napari_dslrxr.core.psf.edge_fit import EdgeImage, fit_edges, synthesize_edge_image  # noqa: E402
+from napari_dslrxr.core.psf.edge_fit import EdgeImage, fit_edges  # noqa: E402
+from napari_dslrxr.core.simulation.edge_synthesis import synthesize_edge_image  # noqa: E402
 from napari_dslrxr.core.psf import PSFModel  # noqa: E402
 
 VENV = HERE / ".venv-pysaber"

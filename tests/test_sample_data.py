@@ -34,7 +34,7 @@ def test_open_samples_in_napari(make_napari_viewer):
 
 
 def test_edge_samples_have_the_geometry_and_the_blur_they_claim():
-    from napari_dslrxr.core.psf.edge_fit import synthesize_edge_image
+    from napari_dslrxr.core.simulation.edge_synthesis import synthesize_edge_image
     from napari_dslrxr.core.psf import PSFModel
 
     layers = samples.make_sample_edges()

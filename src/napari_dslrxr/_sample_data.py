@@ -4,7 +4,7 @@
   :func:`napari_dslrxr.core.simulation.phantom.make_dslr_radiograph` (seeded, so always the same);
 * two edge radiographs of the same blur at two object distances (each with a near-vertical
   and a near-horizontal edge) for the PSF edge picker, from
-  :func:`napari_dslrxr.core.psf.edge_fit.synthesize_edge_image`;
+  :func:`napari_dslrxr.core.simulation.edge_synthesis.synthesize_edge_image`;
 * a simulator scene (thickness map and simulated recording) from
   :mod:`napari_dslrxr.core.simulation.simulator`.
 
@@ -76,7 +76,7 @@ EDGE_BRIGHT_COUNTS = 4000.0
 
 @lru_cache(maxsize=1)
 def _edge_images() -> tuple:
-    from .core.psf.edge_fit import synthesize_edge_image
+    from .core.simulation.edge_synthesis import synthesize_edge_image
     from .core.psf import PSFModel
 
     truth = PSFModel(**EDGE_TRUTH)

@@ -52,7 +52,7 @@ def write_edge_radiographs(folder: Path, blur_sigma_px: float, *, seed: int = 0)
     """
     import tomli_w
 
-    from .core.psf.edge_fit import synthesize_edge_image
+    from .core.simulation.edge_synthesis import synthesize_edge_image
     from .core.io import write_tiff
     from .core.psf import PSFModel
 

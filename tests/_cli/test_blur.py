@@ -9,7 +9,7 @@ import pytest
 import tifffile
 
 from napari_dslrxr.cli import main
-from napari_dslrxr.core.psf.edge_fit import synthesize_edge_image
+from napari_dslrxr.core.simulation.edge_synthesis import synthesize_edge_image
 from napari_dslrxr.core.io import write_tiff
 from napari_dslrxr.core.psf import PSFModel, load_psf
 

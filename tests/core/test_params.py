@@ -57,7 +57,8 @@ def test_missing_and_malformed_files(tmp_path):
 
 @pytest.mark.parametrize("data,message", [
     ({"deblur": {"reg": float("inf")}}, "deblur.reg"),
-    ({"deblur": {"reg": 1e9}}, "deblur.reg"),
+    ({"deblur": {"reg": 1e10}}, "deblur.reg"),
+    ({"deblur": {"reg": 1e-4}}, "deblur.reg"),
     ({"region": {"polygon_xy": [[float("nan"), 0], [1, 1], [2, 2], [3, 3]]}}, "region.polygon_xy"),
     ({"flatfield": {"flat_smoothing_px": float("inf")}}, "flatfield.flat_smoothing_px"),
 ])

@@ -35,7 +35,8 @@ BAD_FILES = {
 # Found by this suite and fixed in core/params.py: values outside the documented ranges.
 BAD_FILES.update({
     "regularisation of infinity": ("[deblur]\nreg = inf\n", ["deblur.reg"]),
-    "regularisation above its documented range (0 to 1e6)": ("[deblur]\nreg = 1e9\n", ["deblur.reg"]),
+    "regularisation above its one range (1e-3 to 1e9)": ("[deblur]\nreg = 1e10\n", ["deblur.reg", "[0.001, 1000000000.0]"]),
+    "regularisation below the solver's range": ("[deblur]\nreg = 1e-4\n", ["deblur.reg", "out of range"]),
     "NaN corner of the screen polygon": ("[region]\npolygon_xy = [[nan, 0], [1, 1], [2, 2], [3, 3]]\n",
                                          ["region.polygon_xy"]),
 })

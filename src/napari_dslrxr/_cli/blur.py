@@ -26,7 +26,7 @@ from typing import Optional
 
 import typer
 
-from .common import HELP_MARKUP_MODE
+from .common import HELP_MARKUP_MODE, option_help
 
 
 def register(app: typer.Typer) -> None:
@@ -40,19 +40,23 @@ def register(app: typer.Typer) -> None:
     def fit_cmd(
         config: Path = typer.Argument(..., help="Edge-fit configuration (TOML)."),
         output: Path = typer.Option(..., "-o", "--output", help="PSF model to write (psf.json)."),
-        outlier_sigma: float = typer.Option(5.0, "--outlier-sigma", min=0.0,
-                                            help="Mask residuals beyond this many robust sigmas and refit "
-                                                 "(0 disables)."),
+        params_file: Optional[Path] = typer.Option(
+            None, "-c", "--config", help="Parameter file (its psf_fit section; options override it)."),
+        outlier_sigma: Optional[float] = typer.Option(None, "--outlier-sigma",
+                                                      help=option_help("psf_fit", "outlier_sigma")),
     ) -> None:
         """Fit the source + detector blur model jointly to the edge radiographs in CONFIG."""
         from ..core import io
         from ..core.io import provenance
+        from ..core.params import load_section
         from ..core.psf import edge_fit
         from ..core.psf import save_psf
 
         t0 = time.perf_counter()
+        settings = load_section(params_file, "psf_fit", outlier_sigma=outlier_sigma)
+        outlier_sigma = settings.outlier_sigma
         cfg = edge_fit.load_edge_config(config)
-        inputs = [config] + cfg.input_files
+        inputs = [config] + cfg.input_files + ([params_file] if params_file is not None else [])
         io.check_not_an_input(output, inputs)
         t_load = time.perf_counter() - t0
         model = edge_fit.fit_edges(cfg.edges, cfg.pixel_pitch_mm, shape_power=cfg.shape_power,

@@ -36,3 +36,23 @@ def parse_roi(text: str | None) -> tuple[int, int, int, int] | None:
 def ensure_parent(path: Path) -> None:
     """Create the output folder if needed (never the file itself)."""
     path.parent.mkdir(parents=True, exist_ok=True)
+
+
+def option_help(section: str, name: str, text: str | None = None) -> str:
+    """Help of the command-line option for field ``name`` of TOML section ``section``: the
+    field's own help, unit, range and default (the parameter file's comment), and where the
+    option lives in the parameter file."""
+    from ..core.param_fields import describe_range, field_info
+    from ..core.params import section_class
+
+    info = field_info(section_class(section), name)
+    facts = [f"unit {info['unit']}"] if info.get("unit") else []
+    limits = describe_range(info)
+    if limits:
+        facts.append(limits)
+    default = info["default"]
+    if default not in (None, [], ""):
+        facts.append(f"default {default:g}" if isinstance(default, float) else f"default {default}")
+    body = text or info["help"]
+    # "section.name" as in the error messages (square brackets are markup in the help renderer)
+    return f"{body[0].upper()}{body[1:]} ({'; '.join(facts)}; file: {section}.{name})."

@@ -15,6 +15,8 @@ from typing import Optional
 
 import typer
 
+from .common import option_help
+
 #: Relative tolerance on the sum of a kernel read from a file (it must be a normalised kernel).
 KERNEL_SUM_TOLERANCE = 0.05
 
@@ -56,8 +58,10 @@ def register(app: typer.Typer) -> None:
         source_to_object_mm: Optional[float] = typer.Option(None, "--source-to-object-mm", help="With --psf."),
         source_to_detector_mm: Optional[float] = typer.Option(None, "--source-to-detector-mm", help="With --psf."),
         kernel: Optional[Path] = typer.Option(None, "--kernel", help="Kernel TIFF (odd size, sums to 1)."),
-        method: str = typer.Option("adaptive", "--method", help="adaptive | wiener | rls."),
-        reg: str = typer.Option("auto", "--reg", help="Regularisation knob (larger = smoother) or 'auto'."),
+        config: Optional[Path] = typer.Option(None, "-c", "--config",
+                                              help="Parameter file (its deblur section; options override it)."),
+        method: Optional[str] = typer.Option(None, "--method", help=option_help("deblur", "method", "method")),
+        reg: Optional[str] = typer.Option(None, "--reg", help=option_help("deblur", "reg", "regularisation knob (larger = smoother) or 'auto'")),
     ) -> None:
         """Deconvolve INPUT with a known blur kernel and write a float32 TIFF."""
         import numpy as np
@@ -69,11 +73,14 @@ def register(app: typer.Typer) -> None:
         from ..core.psf import load_psf
         from .common import ensure_parent
 
-        dc.check_method(method)
-        reg_value = dc.check_reg(reg)
+        from ..core.params import load_section
+
+        settings = load_section(config, "deblur", method=method,
+                                reg=None if reg is None else dc.check_reg(reg))
+        method, reg_value = settings.method, settings.reg
         if (psf is None) == (kernel is None):
             raise ParameterError("give either --psf (with both distances) or --kernel, not both or neither")
-        inputs = [input_path]
+        inputs = [input_path] + ([config] if config is not None else [])
         parameters: dict = {"method": method, "reg": reg_value}
         if psf is not None:
             if source_to_object_mm is None or source_to_detector_mm is None:

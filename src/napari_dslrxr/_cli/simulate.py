@@ -16,6 +16,8 @@ from typing import Optional
 
 import typer
 
+from .common import option_help
+
 
 def register(app: typer.Typer) -> None:
     """Add ``simulate`` and ``diagnose`` to ``app``."""
@@ -52,32 +54,35 @@ def register(app: typer.Typer) -> None:
         scene: Path = typer.Argument(..., help="Scene TOML file (geometry, object, start values)."),
         recording: Path = typer.Argument(..., help="Single-channel linear recording (TIFF etc.)."),
         output: Path = typer.Option(..., "-o", "--output", help="Report folder."),
-        max_terms: int = typer.Option(4, "--max-terms", min=0, help="Add at most this many terms."),
+        params_file: Optional[Path] = typer.Option(
+            None, "-c", "--config", help="Parameter file (its diagnose section; options override it)."),
+        max_terms: Optional[int] = typer.Option(None, "--max-terms", help=option_help("diagnose", "max_terms")),
         candidates: Optional[str] = typer.Option(
-            None, "--candidates", help="Comma-separated library terms to consider (default all)."),
+            None, "--candidates", help=option_help("diagnose", "candidates",
+                                                   "comma-separated library terms to consider")),
     ) -> None:
         """Locate and name what the base model of the scene leaves out of a recording."""
         from ..core import diagnosis, io
         from ..core.diagnosis import report
         from ..core.simulation import simulator
         from ..core.errors import InputError
-        from ..core.simulation.physics_terms import get_term
+        from ..core.params import load_section
 
         t0 = time.perf_counter()
+        names = None if candidates is None else [n.strip() for n in candidates.split(",") if n.strip()]
+        settings = load_section(params_file, "diagnose", max_terms=max_terms, candidates=names)
         sc = simulator.load_scene(scene)
         loaded = io.read_image(recording)
         data = loaded.data
         if data.ndim != 2:
             raise InputError(recording, f"diagnosis needs a single-channel recording, got shape {data.shape}")
-        names = None
-        if candidates:
-            names = tuple(get_term(n.strip()).name for n in candidates.split(",") if n.strip())
-        opts = diagnosis.DiagnosisOptions(max_terms=max_terms, candidates=names)
-        result = diagnosis.diagnose_scene(sc, data, opts)
-        inputs = [scene, recording] + ([sc.thickness_path] if sc.thickness_path else [])
+        result = diagnosis.diagnose_scene(sc, data, settings.options())
+        inputs = [scene, recording] + ([sc.thickness_path] if sc.thickness_path else []) + (
+            [params_file] if params_file is not None else [])
         report.write_report(result, output, inputs=inputs,
                             parameters={"scene": str(scene), "recording": str(recording),
-                                        "max_terms": max_terms, "candidates": names},
+                                        "max_terms": settings.max_terms,
+                                        "candidates": tuple(settings.candidates) or None},
                             timings_s={"diagnose": time.perf_counter() - t0})
         typer.echo(result.message)
         typer.echo(f"base chi2/dof {result.base_chi2_per_dof:.4f} -> final {result.final_chi2_per_dof:.4f}; "

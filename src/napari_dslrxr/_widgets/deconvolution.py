@@ -20,8 +20,9 @@ import numpy as np
 from magicgui.widgets import CheckBox, Container, FileEdit, FloatLogSlider, PushButton, create_widget
 
 from ..core.stages.deconvolution import DeconvolutionParams, deconvolve, deconvolve_steps, estimate_regularisation
-from ..core.psf.edge_fit import EdgeFitSettings
+from ..core.psf.fit_params import EdgeFitSettings
 from ..core.errors import ParameterError
+from ..core.param_fields import field_info
 from ..core.params import DeblurParams
 from ..core.psf import load_psf
 from ._common import (JobPanel, debounced, guarded, notify_info, param_tooltip, param_widget, readout_label,
@@ -35,7 +36,10 @@ if TYPE_CHECKING:
 #: Solver used for the live preview of each method: the closed-form ones preview themselves;
 #: the sparse adaptive prior is previewed by the gradient-regularised solve it starts from.
 PREVIEW_METHOD = {"wiener": "wiener", "rls": "rls", "adaptive": "rls"}
-REG_SLIDER_MIN, REG_SLIDER_MAX = 1e-1, 1e6
+#: The slider spans the one valid range of ``reg`` (its field metadata), so every value the
+#: parameter file, the command line or the solver accepts can be set and shown.
+REG_SLIDER_MIN = float(field_info(DeconvolutionParams, "reg")["min"])
+REG_SLIDER_MAX = float(field_info(DeconvolutionParams, "reg")["max"])
 #: Where the regularisation slider starts (and returns to with "Restore defaults").
 REG_START = 100.0
 _DEBOUNCE_MS = 60
@@ -126,7 +130,7 @@ class DeconvolutionWidget(Container):
 
     # -- parameters (TOML section [deblur]) -----------------------------------------------------
     def get_params(self) -> DeconvolutionParams:
-        return DeconvolutionParams(method=self._method.value, reg=float(self._reg.value)).validate()
+        return DeconvolutionParams(method=self._method.value, reg=float(self._reg.value))
 
     def set_params(self, params: DeconvolutionParams) -> None:
         self._method.value = params.method

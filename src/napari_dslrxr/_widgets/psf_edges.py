@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from magicgui.widgets import ComboBox, Container, FileEdit, PushButton, create_widget
 
-from ..core.psf.edge_fit import EdgeFitSettings, EdgeImage, fit_edges
+from ..core.psf.edge_fit import EdgeImage, fit_edges
+from ..core.psf.fit_params import EdgeFitSettings
 from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
 from ._common import (JobPanel, guarded, notify_info, param_tooltip, param_widget, readout_label,
@@ -88,7 +89,7 @@ def fit_summary(model: PSFModel) -> str:
     lines.append(f"core weight: {_with_sd(model.detector_weight_core, unc.get('detector_weight_core'))}")
     lines.append(f"residual rms {report.get('residual_rms', float('nan')):.3g} "
                  f"(noise {report.get('noise_rms_estimate', float('nan')):.3g}), "
-                 f"{report.get('n_images', 0)} ROIs, {report.get('fit_time_s', 0):.1f} s")
+                 f"{report.get('n_images', 0)} ROIs")
     return "\n".join(lines)
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
 import os
 import re
 import typing
@@ -21,12 +20,18 @@ from pathlib import Path
 
 import tomli_w
 
-from .stages.contrast import ContrastParams
-from .stages.dynamic_range import DynamicRangeParams
 from .errors import InputError, ParameterError
 from .io.input_kind import InputParams
+from .param_fields import check_field, describe_range, field_info, validate_fields
+from .stages.contrast import ContrastParams
+from .stages.deconvolution import DeconvolutionParams
+from .stages.dynamic_range import DynamicRangeParams
 from .stages.flatfield import FlatFieldParams
 from .stages.region import RegionParams
+
+__all__ = ["DeblurParams", "OutputParams", "PipelineParams", "SECTION_HELP", "check_field", "default_params_toml",
+           "field_info", "load_params", "load_section", "section_class", "params_from_dict", "params_to_dict", "params_to_toml", "save_params",
+           "validate_params"]
 
 
 def _impulse_class():
@@ -39,24 +44,8 @@ def _default_impulse():
     return _impulse_class()()
 
 
-@dataclass
-class DeblurParams:
-    """Parameters of the optional deblurring stage (TOML section ``[deblur]``).
-
-    Deblurring runs only when a PSF model is given (``dslrxr run --psf psf.json``).
-
-    Attributes
-    ----------
-    method : str
-        ``"adaptive"`` (sparse adaptive prior), ``"wiener"`` or ``"rls"``.
-    reg : float or str
-        Regularisation weight, or ``"auto"`` to estimate it from the image.
-    """
-
-    method: str = field(default="adaptive", metadata={
-        "help": "deconvolution method (runs only when a PSF model is given)", "choices": ("adaptive", "wiener", "rls")})
-    reg: float | str = field(default="auto", metadata={
-        "help": "regularisation weight (> 0), or \"auto\" to estimate it from the image", "min": 0.0, "max": 1e6})
+#: The ``[deblur]`` section is the deconvolution stage's own parameter class (one class, one range).
+DeblurParams = DeconvolutionParams
 
 
 @dataclass
@@ -95,6 +84,9 @@ class OutputParams:
     pixel_spacing_mm: float = field(default=0.0, metadata={
         "help": "pixel pitch at the screen; 0 = unknown (then not written to DICOM)", "unit": "mm", "min": 0.0, "max": 100.0})
 
+    def __post_init__(self) -> None:
+        validate_fields(self, "output")
+
 
 #: ``[batch] scheduler``: a dask.distributed scheduler address (``tcp://host:8786``, also
 #: ``tls://``, ``inproc://``..., or a bare ``host:port``).
@@ -126,6 +118,7 @@ class BatchParams:
         "min": 1, "max": 64})
 
     def __post_init__(self):
+        validate_fields(self, "batch")
         if self.scheduler not in ("", "local") and not _SCHEDULER_ADDRESS.match(self.scheduler):
             raise ParameterError(f"batch.scheduler: expected \"\", \"local\" or an address such as "
                                  f"\"tcp://host:8786\", got {self.scheduler!r}")
@@ -159,105 +152,21 @@ SECTION_HELP = {
     "contrast": "(vi) multiscale contrast enhancement (MUSICA-style Laplacian pyramid)",
     "output": "files written by the run",
     "batch": "how dslrxr run spreads a batch: process pool or dask.distributed cluster (never changes outputs)",
-}
-
-# Help, unit and range of ImpulseParams' fields (its dataclass carries docstrings, not field
-# metadata); merged under any metadata the fields do carry by :func:`field_info`.
-_IMPULSE_META = {
-    "passes_h": {"help": "detect-and-replace passes on hue; 0 skips the channel", "unit": "passes", "min": 0, "max": 10},
-    "passes_s": {"help": "detect-and-replace passes on saturation", "unit": "passes", "min": 0, "max": 10},
-    "passes_v": {"help": "detect-and-replace passes on value V = max(R, G, B)", "unit": "passes", "min": 0, "max": 10},
-    "passes_grey": {"help": "detect-and-replace passes on a grey image and on each raw CFA plane",
-                    "unit": "passes", "min": 0, "max": 10},
-    "window_px": {"help": "median window of the first detection: 3 = the 8 neighbours, 5 = the 8 pixels two "
-                          "steps away (finds patches up to 3x3 px)", "unit": "px", "choices": (3, 5)},
-    "max_patch_px": {"help": "largest pulse patch side grown into", "unit": "px", "min": 1, "max": 8},
-    "bright_only": {"help": "pulses on photon-counting channels are bright only (direct X-ray hits)"},
-    "posterior_threshold": {"help": "a pixel is a pulse when its posterior pulse probability exceeds this",
-                            "unit": "probability", "min": 0.0, "max": 1.0},
-    "min_saturation": {"help": "pixels with saturation below this are left out of hue filtering",
-                       "unit": "fraction", "min": 0.0, "max": 1.0},
-    "min_value_fraction": {"help": "pixels with V below this fraction of the 99th percentile are left out of "
-                                   "hue filtering", "unit": "fraction", "min": 0.0, "max": 1.0},
-    "em_samples": {"help": "pixels subsampled for the EM fit", "unit": "px", "min": 1000, "max": 100_000_000},
-    "em_iterations": {"help": "maximum EM iterations", "unit": "iterations", "min": 1, "max": 500},
+    "psf_fit": "dslrxr psf fit: the joint edge fit (the edges themselves are listed in the edge configuration)",
+    "diagnose": "dslrxr diagnose: which physics terms the diagnosis may add to the base model",
 }
 
 
-def field_info(cls: type, name: str) -> dict:
-    """Help, unit, range, choices and default of field ``name`` of parameter dataclass ``cls``.
+def _command_sections() -> dict[str, type]:
+    """Sections read by single commands, not by the pipeline run.
 
-    The one place the TOML comments, the command-line help and the widgets' tooltips and
-    ranges read a parameter's documentation from. Keys: ``help`` (always), ``default``
-    (always), and ``unit``, ``min``, ``max``, ``choices`` when the field declares them.
+    They stay out of :class:`PipelineParams`: its text seeds the run's DICOM UIDs, which must
+    not change when a setting of another command does.
     """
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    if name not in fields:
-        raise KeyError(f"{cls.__name__} has no field {name!r}")
-    f = fields[name]
-    info = dict(_IMPULSE_META.get(name, {})) if cls.__name__ == "ImpulseParams" else {}
-    info.update(f.metadata or {})
-    info.setdefault("help", name.replace("_", " "))
-    if f.default is not dataclasses.MISSING:
-        info["default"] = f.default
-    elif f.default_factory is not dataclasses.MISSING:
-        info["default"] = f.default_factory()
-    return info
+    from .diagnosis.params import DiagnoseParams
+    from .psf.fit_params import PsfFitParams
 
-
-def _check_value(section: str, f: dataclasses.Field, value, default):
-    """Type and range check of one value; returns the (possibly converted) value."""
-    name = f"{section}.{f.name}"
-    meta = f.metadata or {}
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ParameterError(f"{name}: expected true or false, got {value!r}")
-        return value
-    if f.name == "reg" and section == "deblur":
-        if isinstance(value, str):
-            if value != "auto":
-                raise ParameterError(f"{name}: expected a number > 0 or \"auto\", got {value!r}")
-            return value
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= meta.get("max", 1e6):
-            raise ParameterError(f"{name}: expected a number in (0, {meta.get('max', 1e6):g}] or \"auto\", got {value!r}")
-        return float(value)
-    if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            if isinstance(value, float) and value.is_integer():
-                value = int(value)
-            else:
-                raise ParameterError(f"{name}: expected an integer, got {value!r}")
-    elif isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ParameterError(f"{name}: expected a number, got {value!r}")
-        value = float(value)
-        if value != value:
-            raise ParameterError(f"{name}: expected a number, got NaN")
-    elif isinstance(default, str):
-        if not isinstance(value, str):
-            raise ParameterError(f"{name}: expected a string, got {value!r}")
-        choices = meta.get("choices")
-        if choices and value not in choices:
-            hint = difflib.get_close_matches(value, choices, n=1)
-            extra = f"; did you mean '{hint[0]}'?" if hint else ""
-            raise ParameterError(f"{name}: must be one of {', '.join(choices)}, got {value!r}{extra}")
-        return value
-    elif isinstance(default, list):
-        if not isinstance(value, list):
-            raise ParameterError(f"{name}: expected a list, got {value!r}")
-        if f.name == "polygon_xy" and value:
-            ok = len(value) == 4 and all(isinstance(p, list) and len(p) == 2 and
-                                         all(isinstance(c, (int, float)) and not isinstance(c, bool)
-                                             and math.isfinite(c) for c in p)
-                                         for p in value)
-            if not ok:
-                raise ParameterError(f"{name}: expected [] or 4 [x, y] points in pixels, got {value!r}")
-            value = [[float(c) for c in p] for p in value]
-        return value
-    lo, hi = meta.get("min"), meta.get("max")
-    if lo is not None and value < lo or hi is not None and value > hi:
-        raise ParameterError(f"{name}: {value} is out of range [{lo}, {hi}]")
-    return value
+    return {"psf_fit": PsfFitParams, "diagnose": DiagnoseParams}
 
 
 def _build_section(section: str, cls, values: dict):
@@ -267,12 +176,8 @@ def _build_section(section: str, cls, values: dict):
             hint = difflib.get_close_matches(key, list(known), n=1)
             extra = f"; did you mean '{hint[0]}'?" if hint else f" (valid: {', '.join(known)})"
             raise ParameterError(f"unknown key '{key}' in [{section}]{extra}")
-    defaults = cls()
-    kwargs = {}
-    for key, value in values.items():
-        kwargs[key] = _check_value(section, known[key], value, getattr(defaults, key))
-    try:
-        return cls(**kwargs)
+    try:  # each class checks and converts its values on construction (field metadata)
+        return cls(**values)
     except ParameterError as exc:
         msg = str(exc)
         raise ParameterError(msg if msg.startswith(section) else f"{section}.{msg}") from None
@@ -285,6 +190,14 @@ def _section_classes() -> dict[str, type]:
             for f in dataclasses.fields(PipelineParams)}
 
 
+def section_class(section: str) -> type:
+    """The parameter dataclass of TOML section ``section`` (pipeline or command section)."""
+    classes = {**_section_classes(), **_command_sections()}
+    if section not in classes:
+        raise KeyError(f"no parameter section [{section}]")
+    return classes[section]
+
+
 def params_from_dict(data: dict) -> PipelineParams:
     """Build and validate :class:`PipelineParams` from a nested mapping (a parsed TOML file).
 
@@ -293,8 +206,15 @@ def params_from_dict(data: dict) -> PipelineParams:
     ParameterError
         Unknown section or key (with a suggestion), wrong type or out-of-range value.
     """
-    classes = _section_classes()
-    kwargs = {}
+    return _sections_from_dict(data)[0]
+
+
+def _sections_from_dict(data: dict) -> tuple[PipelineParams, dict]:
+    """The pipeline parameters and the command sections (built, checked) of a parsed file."""
+    pipeline_classes = _section_classes()
+    command_classes = _command_sections()
+    classes = {**pipeline_classes, **command_classes}
+    kwargs, commands = {}, {}
     for section, values in data.items():
         if section not in classes:
             hint = difflib.get_close_matches(section, list(classes), n=1)
@@ -302,8 +222,10 @@ def params_from_dict(data: dict) -> PipelineParams:
             raise ParameterError(f"unknown section [{section}]{extra}")
         if not isinstance(values, dict):
             raise ParameterError(f"[{section}] must be a table of key = value pairs, got {values!r}")
-        kwargs[section] = _build_section(section, classes[section], values)
-    return PipelineParams(**kwargs)
+        built = _build_section(section, classes[section], values)
+        (kwargs if section in pipeline_classes else commands)[section] = built
+    commands = {name: commands.get(name) or cls() for name, cls in command_classes.items()}
+    return PipelineParams(**kwargs), commands
 
 
 def validate_params(params: PipelineParams) -> PipelineParams:
@@ -326,58 +248,86 @@ def params_to_dict(params: PipelineParams, *, run_sections: bool = True) -> dict
     return out
 
 
+def _read_file(path: Path) -> dict:
+    from .io import read_structured_file
+
+    try:
+        return read_structured_file(path, what="parameter file")
+    except InputError as exc:  # a parameter problem for the caller, whatever the file's fault
+        raise ParameterError(str(exc)) from None
+
+
 def load_params(path: str | os.PathLike) -> PipelineParams:
     """Read a parameter file; missing keys take their defaults.
+
+    Every section is checked, the command sections (``[psf_fit]``, ``[diagnose]``) too.
 
     Raises
     ------
     ParameterError
         Missing or unreadable file, TOML syntax error, unknown key, wrong type or range.
     """
-    from .io import read_structured_file
+    return _load_all(Path(path))[0]
 
-    path = Path(path)
+
+def _load_all(path: Path) -> tuple[PipelineParams, dict]:
+    data = _read_file(path)
     try:
-        data = read_structured_file(path, what="parameter file")
-    except InputError as exc:  # a parameter problem for the caller, whatever the file's fault
-        raise ParameterError(str(exc)) from None
-    try:
-        return params_from_dict(data)
+        return _sections_from_dict(data)
     except ParameterError as exc:
         raise ParameterError(f"{path}: {exc}") from None
 
 
-def _field_comment(cls: type, f: dataclasses.Field) -> str:
-    meta = field_info(cls, f.name)
-    bits = []
-    if meta.get("unit"):
-        bits.append(f"unit: {meta['unit']}")
-    if meta.get("min") is not None or meta.get("max") is not None:
-        bits.append(f"range {meta.get('min')} to {meta.get('max')}")
-    if meta.get("choices"):
-        bits.append("one of " + ", ".join(str(c) for c in meta["choices"]))
-    return f"# {meta['help']}" + (f" ({'; '.join(bits)})" if bits else "")
+def load_section(path: str | os.PathLike | None, section: str, **overrides):
+    """The parameters of one TOML section, for a command: from the file ``path`` (defaults when
+    None), then ``overrides`` (command-line options; None = not given) on top.
+
+    The whole file is checked, so a file refused by ``dslrxr run`` is refused here too. An
+    out-of-range option gets the same message as the same value in the file (without the file
+    name).
+    """
+    if path is None:
+        pipeline, commands = PipelineParams(), {n: c() for n, c in _command_sections().items()}
+    else:
+        pipeline, commands = _load_all(Path(path))
+    current = commands[section] if section in commands else getattr(pipeline, section)
+    given = {k: v for k, v in overrides.items() if v is not None}
+    return dataclasses.replace(current, **given) if given else current
+
+
+def _field_comment(cls: type, name: str) -> str:
+    info = field_info(cls, name)
+    bits = [f"unit: {info['unit']}"] if info.get("unit") else []
+    limits = describe_range(info)
+    if limits:
+        bits.append(limits)
+    return f"# {info['help']}" + (f" ({'; '.join(bits)})" if bits else "")
 
 
 def params_to_toml(params: PipelineParams | None = None, *, comments: bool = True,
-                   run_sections: bool = True) -> str:
+                   run_sections: bool = True, commands: dict | None = None) -> str:
     """The TOML text of ``params`` (default: the defaults), with a comment above every key.
 
-    ``run_sections=False`` leaves out :data:`RUN_ONLY_SECTIONS`.
+    ``run_sections=False`` leaves out :data:`RUN_ONLY_SECTIONS`; ``commands`` adds the command
+    sections (``[psf_fit]``, ``[diagnose]``) after the pipeline's.
     """
     params = params or PipelineParams()
+    # The first line is part of the text that seeds the run's DICOM UIDs: keep it as it is.
     lines = ["# napari-dslrxr pipeline parameters (dslrxr run -c this_file.toml).",
              "# Missing keys take their defaults; unknown keys are an error.", ""]
-    for f in dataclasses.fields(params):
-        if not run_sections and f.name in RUN_ONLY_SECTIONS:
-            continue
-        section = getattr(params, f.name)
+    if commands:
+        lines.insert(1, "# The same file sets dslrxr denoise ([impulse]), deconvolve ([deblur]), "
+                        "psf fit ([psf_fit]) and diagnose ([diagnose]): -c this_file.toml.")
+    sections = [(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)
+                if run_sections or f.name not in RUN_ONLY_SECTIONS]
+    sections += list((commands or {}).items())
+    for name, section in sections:
         if comments:
-            lines.append(f"# {SECTION_HELP.get(f.name, f.name)}")
-        lines.append(f"[{f.name}]")
+            lines.append(f"# {SECTION_HELP.get(name, name)}")
+        lines.append(f"[{name}]")
         for sf in dataclasses.fields(section):
             if comments:
-                lines.append(_field_comment(type(section), sf))
+                lines.append(_field_comment(type(section), sf.name))
             lines.append(tomli_w.dumps({sf.name: getattr(section, sf.name)}).strip())
         lines.append("")
     return "\n".join(lines)
@@ -385,7 +335,7 @@ def params_to_toml(params: PipelineParams | None = None, *, comments: bool = Tru
 
 def default_params_toml() -> str:
     """The full default parameter file, every key with a comment (units, range, meaning)."""
-    return params_to_toml(PipelineParams())
+    return params_to_toml(PipelineParams(), commands={n: c() for n, c in _command_sections().items()})
 
 
 def save_params(params: PipelineParams, path: str | os.PathLike) -> Path:

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from napari_dslrxr.core.psf import edge_fit
-from napari_dslrxr.core.psf.edge_fit import EdgeImage, fit_edges, load_edge_config, synthesize_edge_image
+from napari_dslrxr.core.psf.edge_fit import EdgeImage, fit_edges, load_edge_config
+from napari_dslrxr.core.simulation.edge_synthesis import synthesize_edge_image
 from napari_dslrxr.core.errors import InputError, ParameterError
 from napari_dslrxr.core.psf import PSFModel
 

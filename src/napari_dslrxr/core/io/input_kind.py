@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..param_fields import validate_fields
+
 CAMERA, DISPLAY, AUTO = "camera", "display", "auto"
 INPUT_KINDS = (AUTO, CAMERA, DISPLAY)
 
@@ -60,6 +62,9 @@ class InputParams:
                 "linear counts from the camera; display = a radiograph in display form, bone bright "
                 "(camera raw and CR/DX DICOM headers decide for themselves)",
         "choices": INPUT_KINDS})
+
+    def __post_init__(self) -> None:
+        validate_fields(self, "input")
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,9 @@
 * :mod:`.simulator` - scenes (geometry, object, source) and the chain model that renders a
   recording from a scene and a set of terms;
 * :mod:`.phantom` - seeded DSLR-like photographs of a scintillator with flat and dark frames and the
-  truth that made them (sample data, demo, tests).
+  truth that made them (sample data, demo, tests);
+* :mod:`.edge_synthesis` - radiographs of straight edges blurred by a PSF model (tests, demo,
+  sample data), made independently of the edge fit's forward model.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "block_mean", "ChainModel", "simulate_recording", "parse_effect_option", "phantom_thickness_mm"),
     "phantom": ("SCINTILLATOR_RGB_WEIGHTS", "PhantomTruth", "PhantomFrames", "make_object",
         "make_dslr_radiograph"),
+    "edge_synthesis": ("synthesize_edge_image",),
 }
 
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

@@ -37,6 +37,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..param_fields import validate_fields
+from ..robust import robust_sigma as _robust_sigma
+
 
 @dataclass
 class ContrastParams:
@@ -79,6 +82,9 @@ class ContrastParams:
         "help": "edges with a step above about this keep unit gain (no halo at strong edges); 0 = off",
         "unit": "VOI units", "min": 0.0, "max": 2.0})
 
+    def __post_init__(self) -> None:
+        validate_fields(self, "contrast")
+
 
 def auto_levels(shape: tuple[int, int], coarsest_px: int = 32) -> int:
     """Number of levels so that the coarsest band is about ``coarsest_px`` on the short side."""
@@ -117,7 +123,7 @@ def robust_sigma(values: np.ndarray) -> float:
     v = np.asarray(values, np.float32).ravel()
     if v.size > 1_000_000:
         v = v[:: v.size // 500_000]
-    return float(1.4826 * np.median(np.abs(v - np.median(v))))
+    return _robust_sigma(v)
 
 
 def map_coefficients(band: np.ndarray, *, gain: float, power: float, max_coef: float,

@@ -54,12 +54,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Generator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.fft as sfft
 
 from ..errors import InputError, ParameterError
+from ..param_fields import check_value, validate_fields
 
 METHODS = ("adaptive", "wiener", "rls")
 
@@ -89,7 +90,10 @@ REG_MIN, REG_MAX = 1e-3, 1e9
 
 @dataclass
 class DeconvolutionParams:
-    """Parameters of the deconvolution stage (TOML section ``[deblur]``).
+    """Parameters of the deconvolution stage (TOML section ``[deblur]``), checked on construction.
+
+    The one class of the section: ``dslrxr run`` (where deblurring runs only when a PSF model is
+    given), ``dslrxr deconvolve`` and the deconvolution widget all use it.
 
     Attributes
     ----------
@@ -100,13 +104,19 @@ class DeconvolutionParams:
         to the noise; see the module docstring) or ``"auto"`` to estimate it from the image.
     """
 
-    method: str = "adaptive"
-    reg: float | str = "auto"
+    method: str = field(default="adaptive", metadata={
+        "help": "deconvolution method (in a pipeline run only when a PSF model is given)", "choices": METHODS})
+    reg: float | str = field(default="auto", metadata={
+        "help": "regularisation knob, larger = smoother (prior precision of the image gradient relative "
+                "to the noise), or \"auto\" to estimate it from the image",
+        "min": REG_MIN, "max": REG_MAX, "auto": True})
+
+    def __post_init__(self) -> None:
+        validate_fields(self, "deblur")
 
     def validate(self) -> DeconvolutionParams:
-        """Check the values; raise :class:`ParameterError` with a one-line message."""
-        check_method(self.method)
-        check_reg(self.reg)
+        """The values are checked on construction; kept for callers that re-check after edits."""
+        validate_fields(self, "deblur")
         return self
 
 
@@ -115,24 +125,20 @@ class DeconvolutionParams:
 
 def check_method(method: str) -> str:
     """Return ``method`` if it is one of :data:`METHODS`, else raise :class:`ParameterError`."""
-    if method not in METHODS:
-        raise ParameterError(f"deblur method: expected one of {', '.join(METHODS)}, got {method!r}")
-    return method
+    return check_value(DeconvolutionParams, "deblur", "method", method)
 
 
 def check_reg(reg: float | str) -> float | str:
-    """Return ``reg`` as ``"auto"`` or a float in [REG_MIN, REG_MAX]; else raise ParameterError."""
-    if isinstance(reg, str):
-        if reg.strip().lower() == "auto":
-            return "auto"
+    """Return ``reg`` as ``"auto"`` or a float in [REG_MIN, REG_MAX]; else raise ParameterError.
+
+    Text (a command-line value) that reads as a number is taken as that number.
+    """
+    if isinstance(reg, str) and reg.strip().lower() != "auto":
         try:
             reg = float(reg)
         except ValueError:
-            raise ParameterError(f"deblur reg: expected a positive number or 'auto', got {reg!r}") from None
-    value = float(reg)
-    if not math.isfinite(value) or not REG_MIN <= value <= REG_MAX:
-        raise ParameterError(f"deblur reg: must be 'auto' or between {REG_MIN:g} and {REG_MAX:g}, got {reg!r}")
-    return value
+            pass  # refused below with the parameter file's message
+    return check_value(DeconvolutionParams, "deblur", "reg", reg)
 
 
 def validate_kernel(kernel: np.ndarray, source: str = "kernel") -> np.ndarray:

@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..param_fields import validate_fields
+
 
 @dataclass
 class DynamicRangeParams:
@@ -75,6 +77,9 @@ class DynamicRangeParams:
     edge_step: float = field(default=0.2, metadata={
         "help": "steps larger than this stay out of the low-pass (no halo at strong edges); 0 = plain blur",
         "unit": "VOI units", "min": 0.0, "max": 1.0})
+
+    def __post_init__(self) -> None:
+        validate_fields(self, "dynamic_range")
 
 
 def masked_lowpass(image: np.ndarray, mask: np.ndarray | None, size_px: int) -> np.ndarray:

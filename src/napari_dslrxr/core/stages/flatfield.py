@@ -21,6 +21,8 @@ import cv2
 import numpy as np
 
 from ..errors import InputError, ParameterError
+from ..param_fields import validate_fields
+from ..robust import robust_sigma
 
 
 @dataclass
@@ -62,6 +64,9 @@ class FlatFieldParams:
     pulse_threshold_sigma: float = field(default=6.0, metadata={
         "help": "a reference-frame pixel is a pulse when it exceeds its 5x5 median by this many noise sigmas",
         "unit": "sigma", "min": 3.0, "max": 50.0})
+
+    def __post_init__(self) -> None:
+        validate_fields(self, "flatfield")
 
 
 @dataclass
@@ -173,13 +178,13 @@ def _pulse_noise_model(values: np.ndarray, median: np.ndarray, offset: float) ->
     bright = signal > 0.25 * top
     if top > 0 and np.count_nonzero(bright) > 100:
         scaled = residual[bright] / np.sqrt(signal[bright])
-        b = (1.4826 * float(np.median(np.abs(scaled - np.median(scaled))))) ** 2
+        b = robust_sigma(scaled) ** 2
     else:
         b = 0.0
     dark = signal < 0.05 * top if top > 0 else np.ones(signal.shape, bool)
     if np.count_nonzero(dark) > 100:
         r = residual[dark]
-        a = (1.4826 * float(np.median(np.abs(r - np.median(r))))) ** 2
+        a = robust_sigma(r) ** 2
     else:
         a = b
     return max(a, 1e-6), b

@@ -58,6 +58,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from ..errors import InputError, ParameterError
+from ..param_fields import validate_fields
 
 __all__ = [
     "ImpulseParams",
@@ -149,41 +150,44 @@ class ImpulseParams:
         Maximum EM iterations (1 to 500).
     """
 
-    passes_h: int = 3
-    passes_s: int = 1
-    passes_v: int = 1
-    passes_grey: int = 1
-    window_px: int = 5
-    max_patch_px: int = 4
-    bright_only: bool = True
+    passes_h: int = field(default=3, metadata={
+        "help": "detect-and-replace passes on hue (0 skips)", "unit": "passes", "min": 0, "max": 10})
+    passes_s: int = field(default=1, metadata={
+        "help": "passes on saturation (0 skips)", "unit": "passes", "min": 0, "max": 10})
+    passes_v: int = field(default=1, metadata={
+        "help": "passes on value V = max(R, G, B) (0 skips)", "unit": "passes", "min": 0, "max": 10})
+    passes_grey: int = field(default=1, metadata={
+        "help": "passes on a grey image and on each raw CFA plane (0 skips)", "unit": "passes", "min": 0, "max": 10})
+    window_px: int = field(default=5, metadata={
+        "help": "median window of the first detection, 3 or 5 px", "unit": "px", "min": 3, "max": 5})
+    max_patch_px: int = field(default=4, metadata={
+        "help": "largest pulse patch side grown into", "unit": "px", "min": 1, "max": 8})
+    bright_only: bool = field(default=True, metadata={
+        "help": "pulses on photon-counting channels are bright only (direct X-ray hits)"})
     min_contrast: float = field(default=0.07, metadata={
         "help": "photon-counting channels: a pulse must also exceed the local median by this "
-                "fraction of it (Weber contrast, 0 to 1)"})
+                "fraction of it (Weber contrast)", "unit": "fraction", "min": 0.0, "max": 1.0})
     neighbour_prior: float = field(default=0.5, metadata={
         "help": "prior pulse probability of a pixel touching a detected pulse, for patch rims "
-                "(0 < p < 1)"})
-    posterior_threshold: float = 0.5
-    min_saturation: float = 0.05
-    min_value_fraction: float = 0.02
-    em_samples: int = 250_000
-    em_iterations: int = 30
+                "(0 < p < 1)", "unit": "probability", "min": 0.0, "max": 1.0, "open_range": True})
+    posterior_threshold: float = field(default=0.5, metadata={
+        "help": "a pixel is a pulse when its posterior pulse probability exceeds this (0 < t < 1)",
+        "unit": "probability", "min": 0.0, "max": 1.0, "open_range": True})
+    min_saturation: float = field(default=0.05, metadata={
+        "help": "pixels with saturation below this are left out of hue filtering", "unit": "fraction",
+        "min": 0.0, "max": 1.0})
+    min_value_fraction: float = field(default=0.02, metadata={
+        "help": "pixels with V below this fraction of the 99th percentile are left out of hue filtering",
+        "unit": "fraction", "min": 0.0, "max": 1.0})
+    em_samples: int = field(default=250_000, metadata={
+        "help": "pixels subsampled for the EM fit", "unit": "px", "min": 1000, "max": 100_000_000})
+    em_iterations: int = field(default=30, metadata={
+        "help": "maximum EM iterations", "unit": "iterations", "min": 1, "max": 500})
 
     def __post_init__(self) -> None:
-        for name in ("passes_h", "passes_s", "passes_v", "passes_grey"):
-            _check_int(name, getattr(self, name), 0, 10)
-        _check_int("window_px", self.window_px, 3, 5)
+        validate_fields(self, "impulse")
         if self.window_px not in MEDIAN_RESIDUAL_VARIANCE_FACTOR:
             raise ParameterError(f"impulse.window_px: must be 3 or 5, got {self.window_px}")
-        _check_int("max_patch_px", self.max_patch_px, 1, 8)
-        _check_int("em_samples", self.em_samples, 1000, 100_000_000)
-        _check_int("em_iterations", self.em_iterations, 1, 500)
-        if not isinstance(self.bright_only, (bool, np.bool_)):
-            raise ParameterError(f"impulse.bright_only: must be true or false, got {self.bright_only!r}")
-        _check_float("posterior_threshold", self.posterior_threshold, 0.0, 1.0, open_ends=True)
-        _check_float("min_contrast", self.min_contrast, 0.0, 1.0)
-        _check_float("neighbour_prior", self.neighbour_prior, 0.0, 1.0, open_ends=True)
-        _check_float("min_saturation", self.min_saturation, 0.0, 1.0)
-        _check_float("min_value_fraction", self.min_value_fraction, 0.0, 1.0)
 
     @classmethod
     def from_mapping(cls, values: dict) -> "ImpulseParams":
@@ -193,22 +197,6 @@ class ImpulseParams:
         if unknown:
             raise ParameterError(f"impulse: unknown parameter(s) {', '.join(unknown)}")
         return cls(**values)
-
-
-def _check_int(name: str, value, lo: int, hi: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ParameterError(f"impulse.{name}: must be an integer, got {value!r}")
-    if not lo <= value <= hi:
-        raise ParameterError(f"impulse.{name}: must be in [{lo}, {hi}], got {value}")
-
-
-def _check_float(name: str, value, lo: float, hi: float, open_ends: bool = False) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ParameterError(f"impulse.{name}: must be a number, got {value!r}")
-    ok = (lo < value < hi) if open_ends else (lo <= value <= hi)
-    if not ok or not math.isfinite(value):
-        brackets = f"({lo}, {hi})" if open_ends else f"[{lo}, {hi}]"
-        raise ParameterError(f"impulse.{name}: must be in {brackets}, got {value}")
 
 
 @dataclass

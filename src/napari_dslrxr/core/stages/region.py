@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError, ParameterError
+from ..param_fields import validate_fields
 
 
 @dataclass
@@ -68,12 +69,16 @@ class RegionParams:
     exclude_direct_exposure: bool = field(default=True, metadata={
         "help": "leave the unattenuated (direct-exposure) background out of the value-of-interest window"})
     polygon_xy: list = field(default_factory=list, metadata={
-        "help": "user override of the screen corners [[x, y], ...] (4 points, px, TL TR BR BL); [] = detect"})
+        "help": "user override of the screen corners [[x, y], ...] (4 points, px, TL TR BR BL); [] = detect",
+        "unit": "px", "points": 4})
     detect_collimation: bool = field(default=True, metadata={
         "help": "display radiographs only: find collimator blades and use the exposed field as the region"})
     collimation_inset_px: float = field(default=10.0, metadata={
         "help": "move each found collimator edge this far into the field (drops the blade's penumbra)",
         "unit": "px", "min": 0.0, "max": 200.0})
+
+    def __post_init__(self) -> None:
+        validate_fields(self, "region")
 
 
 @dataclass
