@@ -96,6 +96,6 @@ def test_field_info_is_the_one_source_of_help_unit_and_range():
     assert (passes["min"], passes["max"], passes["default"]) == (0, 10, 3)
     text = params_to_toml()
     assert f"# {passes['help']} (unit: passes; range 0 to 10)" in text
-    assert f"# {info['help']} (unit: gain; range 0.5 to 3.0)" in text
+    assert f"# {info['help']} (unit: gain; range 0.5 to 3)" in text
     with pytest.raises(KeyError):
         field_info(ContrastParams, "no_such_field")
