@@ -96,7 +96,6 @@ def calibrated_effect(name: str, target_snr: float, geometry: gen.Geometry, came
 
 def build_cases(seeds: str) -> list[dict]:
     base_seed = SEED_BASE[seeds]
-    geometry, camera = gen.Geometry(), gen.Camera()
     cases = []
     k = 0
 
@@ -285,6 +284,13 @@ def main() -> None:
     args = ap.parse_args()
     prefixes = tuple(p for p in args.only.split(",") if p) or ("",)
     cases = [c for c in build_cases(args.seeds) if c["label"].startswith(prefixes)]
+    # interleave the kinds (a partial run still covers every kind); the 2048² frames last
+    by_kind: dict[str, list] = {}
+    for c in cases:
+        by_kind.setdefault("large" if "size" in (c.get("nuisance") or {}) else c["kind"], []).append(c)
+    order = [k for k in ("single", "null", "outside", "pair") if k in by_kind]
+    cases = [c for group in zip(*[by_kind[k] + [None] * (max(map(len, by_kind.values())) - len(by_kind[k]))
+                                  for k in order]) for c in group if c is not None] + by_kind.get("large", [])
     if args.limit:
         cases = cases[:args.limit]
     out_dir = Path(args.out)

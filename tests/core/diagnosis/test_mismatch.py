@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from napari_dslrxr.core.diagnosis import noise as diagnosis_noise
-from napari_dslrxr.core.diagnosis.mismatch import DiagnosisOptions, diagnose_scene
+from napari_dslrxr.core.diagnosis import DiagnosisOptions, diagnose_scene
 from napari_dslrxr.core.diagnosis.terms import inverse_square_strength, physical_bounds
 from napari_dslrxr.core.simulation.physics_terms import LIBRARY, get_term
 from napari_dslrxr.core.simulation.simulator import ChainModel, parse_scene, phantom_thickness_mm, simulate_recording

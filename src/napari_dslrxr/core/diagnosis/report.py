@@ -20,7 +20,8 @@ import numpy as np
 from .. import io
 from ..io import provenance
 from ..simulation.physics_terms import LIBRARY_BY_NAME
-from .mismatch import DiagnosisResult, multiscale_maps
+from .locating import multiscale_maps
+from .result import DiagnosisResult
 
 PROFILE_LABELS = {
     "edge_distance_px": "signed distance to edges (px, + = open side)",

@@ -1,0 +1,217 @@
+"""Rank, compare, then accept: the projected score test ranks the library, the best candidates
+are refitted jointly, and the best refit is accepted if it beats the threshold, the held-out
+blocks and the generic smooth competitors; runner-up, ambiguity, confusable pairs and
+parameters at a bound are reported."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..simulation.physics_terms import ChainGrid, PhysicsTerm, get_term
+from .fitting import Layout, Problem, covariance, orthonormal
+from .result import AddedTerm, DiagnosisOptions
+from .terms import GENERIC_COMPETITORS, GENERIC_SIGNATURE, physical_bounds, probe_params
+
+
+def _candidate_columns(problem: Problem, layout: Layout, x: np.ndarray, term: PhysicsTerm,
+                       grid_point: dict) -> np.ndarray:
+    """Whitened Jacobian columns of ``term`` (non-grid params) at its probe point."""
+    base, terms = layout.unpack(x)
+    probe = probe_params(term, problem.model.grid)
+    probe.update(grid_point)
+    f_probe = problem.model.expected(base, terms + [(term, probe)])
+    cols = []
+    for spec in term.params:
+        if spec.is_grid:
+            continue
+        plus = dict(probe)
+        # forward difference, stepping inside the prior range
+        h = spec.step if probe[spec.name] + spec.step <= spec.prior[1] else -spec.step
+        plus[spec.name] += h
+        f_plus = problem.model.expected(base, terms + [(term, plus)])
+        cols.append(problem.whiten_field((f_plus - f_probe) / h * problem.wsqrt))
+    return np.stack(cols, axis=1)
+
+
+def rank(problem: Problem, layout: Layout, x: np.ndarray, jac0: np.ndarray, z: np.ndarray,
+          candidates: list[PhysicsTerm]) -> list[dict]:
+    """Projected score test for each candidate (max over its shape grid)."""
+    q0 = orthonormal(jac0, np.linalg.norm(jac0, axis=0).max(), 1e-9)
+    log_n = np.log(problem.n)
+    out = []
+    for term in candidates:
+        best = None
+        for gp in term.grid_points():
+            cols = _candidate_columns(problem, layout, x, term, gp)
+            perp = cols - q0 @ (q0.T @ cols)
+            # S = gᵀ G⁺ g with G = B⊥ᵀB⊥, g = B⊥ᵀz (small d×d problem; directions whose
+            # projected norm is below 1e-4 of the raw column norm are not identifiable)
+            gram = perp.T @ perp
+            grad = perp.T @ z
+            evals, evecs = np.linalg.eigh(gram)
+            ref = float(np.linalg.norm(cols, axis=0).max())
+            keep = evals > (1e-4 * ref) ** 2
+            if not keep.any():
+                continue
+            proj = evecs[:, keep].T @ grad
+            score = float(np.sum(proj**2 / evals[keep]))
+            if best is None or score > best["score"]:
+                coef = evecs[:, keep] @ (proj / evals[keep])
+                best = {"effect": term.name, "score": score, "dof": int(keep.sum()),
+                        "grid": dict(gp), "one_step": [float(c) for c in coef], "_perp": perp}
+        if best is None:
+            continue
+        k = len(term.params)
+        best["delta_bic_est"] = best["score"] - k * log_n
+        out.append(best)
+    out.sort(key=lambda d: -d["delta_bic_est"])
+    return out
+
+
+@dataclass
+class _Trial:
+    term: PhysicsTerm
+    layout: Layout
+    x: np.ndarray
+    chi2: float
+    jac: np.ndarray
+    delta_bic: float
+    score: float = 0.0
+    cand: dict | None = None
+
+    def summary(self) -> dict:
+        return {"effect": self.term.name, "delta_bic": round(float(self.delta_bic), 2),
+                "score": round(float(self.score), 2)}
+
+
+def _refit_with(problem: Problem, layout: Layout, x: np.ndarray, chi2_now: float, term: PhysicsTerm,
+                start: dict, opts: DiagnosisOptions, log_n: float) -> _Trial:
+    new_layout = Layout.build(layout.base_fixed, layout.terms + [term], problem.model.grid, layout.free_base)
+    nb = len(layout.free_base)
+    new_layout.lower[:nb] = layout.lower[:nb]
+    base_cur, current = layout.unpack(x)
+    x0 = new_layout.pack(base_cur, {**{t.name: p for t, p in current}, term.name: start})
+    x_ext, chi2_ext, jac_ext = problem.fit(new_layout, x0, max_nfev=opts.max_nfev)
+    delta_bic = chi2_now - chi2_ext - len(term.params) * log_n
+    return _Trial(term, new_layout, x_ext, chi2_ext, jac_ext, float(delta_bic))
+
+
+def _start_from_candidate(term: PhysicsTerm, cand: dict, grid: ChainGrid) -> dict:
+    start = probe_params(term, grid)
+    start.update(cand["grid"])
+    bounds = physical_bounds(term, grid)
+    free = [sp for sp in term.params if not sp.is_grid]
+    for spec, value in zip(free, cand["one_step"]):
+        lo, hi = bounds.get(spec.name, spec.prior)
+        if spec.probe != spec.null and abs(value) > 0.1 * abs(spec.probe) and lo <= value <= hi:
+            start[spec.name] = value
+    return start
+
+
+def _heldout_gain(problem: Problem, layout: Layout, x: np.ndarray, trial: _Trial,
+                  train: np.ndarray, test: np.ndarray) -> float:
+    """Fit both models on the training blocks; χ² improvement on the held-out blocks."""
+    x_cur_tr, _, _ = problem.fit(layout, x, sel=train, max_nfev=10)
+    x_ext_tr, _, _ = problem.fit(trial.layout, trial.x, sel=train, max_nfev=10)
+    chi_cur = float(np.sum(problem.whitened(layout, x_cur_tr, test) ** 2))
+    chi_ext = float(np.sum(problem.whitened(trial.layout, x_ext_tr, test) ** 2))
+    return chi_cur - chi_ext
+
+
+def _at_bound(trial: _Trial) -> list[str]:
+    flagged = []
+    for i, (owner, key) in enumerate(trial.layout.names):
+        if owner != trial.term.name or trial.term.spec(key).period:
+            continue
+        lo, hi = trial.layout.lower[i], trial.layout.upper[i]
+        tol = 1e-3 * (hi - lo)
+        if trial.x[i] - lo < tol or hi - trial.x[i] < tol:
+            flagged.append(key)
+    return flagged
+
+
+def _confusable(cand: dict, ranking: list[dict], threshold: float) -> list[tuple[str, float]]:
+    out = []
+    basis = orthonormal(cand["_perp"], np.linalg.norm(cand["_perp"], axis=0).max())
+    for other in ranking[:6]:
+        if other["effect"] == cand["effect"]:
+            continue
+        other_basis = orthonormal(other["_perp"], np.linalg.norm(other["_perp"], axis=0).max())
+        sv = np.linalg.svd(basis.T @ other_basis, compute_uv=False)
+        if sv.size and sv.max() > threshold:
+            out.append((other["effect"], float(sv.max())))
+    return out
+
+
+def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, test, say):
+    """Refit the best candidates, accept the best refit (or nothing); returns
+    ``(trial or None, AddedTerm or None, comparison list, generic signature or None)``."""
+    cgrid = problem.model.grid
+    trials: list[_Trial] = []
+    for cand in ranking[:opts.compare_top]:
+        if cand["delta_bic_est"] <= 0 and trials:
+            break
+        term = get_term(cand["effect"])
+        trial = _refit_with(problem, layout, x, chi2_now, term, _start_from_candidate(term, cand, cgrid),
+                            opts, log_n)
+        trial.score, trial.cand = cand["score"], cand
+        trials.append(trial)
+        say(f"{term.name}: refitted ΔBIC {trial.delta_bic:.1f}")
+    trials.sort(key=lambda t: -t.delta_bic)
+    comparison = [t.summary() for t in trials]
+    passing = [t for t in trials if t.delta_bic > opts.accept_delta_bic]
+    if not passing:
+        return None, None, comparison, None
+    # A generic smooth surface that explains the mismatch clearly better than the best library
+    # term means the mismatch is not that term (stray light, a smooth out-of-library field).
+    generic = [_refit_with(problem, layout, x, chi2_now, g, g.null_params(), opts, log_n)
+               for g in GENERIC_COMPETITORS]
+    comparison += [{**g.summary(), "generic": True} for g in generic]
+    best_generic = max(generic, key=lambda t: t.delta_bic)
+    if best_generic.delta_bic > passing[0].delta_bic + opts.accept_delta_bic:
+        say(f"{best_generic.term.name} beats {passing[0].term.name} by "
+            f"{best_generic.delta_bic - passing[0].delta_bic:.1f}: not a library term")
+        return None, None, comparison, GENERIC_SIGNATURE[best_generic.term.name]
+    for i, winner in enumerate(passing):
+        gain = _heldout_gain(problem, layout, x, winner, train, test)
+        if gain <= 0:
+            say(f"{winner.term.name}: held-out χ² worse by {-gain:.1f} — not accepted")
+            continue
+        others = [t for t in trials if t is not winner]
+        runner = others[0] if others else None
+        cov = covariance(winner.jac)
+        se = np.sqrt(np.clip(np.diag(cov), 0, None))
+        params, unc = {}, {}
+        for j, (owner, key) in enumerate(winner.layout.names):
+            if owner == winner.term.name:
+                params[key], unc[key] = winner.term.spec(key).wrap(float(winner.x[j])), float(se[j])
+        ambiguous = bool(runner is not None and runner.delta_bic > opts.accept_delta_bic
+                         and winner.delta_bic - runner.delta_bic < opts.ambiguity_bic)
+        separating = ""
+        if ambiguous:
+            separating = (f"{winner.term.name}: {winner.term.separating}; "
+                          f"{runner.term.name}: {runner.term.separating}")
+        n_dof = problem.n_effective - len(winner.x)
+        added = AddedTerm(winner.term.name, params, unc, winner.delta_bic, winner.chi2 / n_dof,
+                          winner.score, chi2_now - winner.chi2, float(gain),
+                          _confusable(winner.cand, ranking, opts.confusable_correlation),
+                          runner.term.name if runner else None,
+                          float(runner.delta_bic) if runner else None, ambiguous, separating,
+                          _at_bound(winner))
+        say(f"added {winner.term.name} ΔBIC {winner.delta_bic:.1f} (runner-up "
+            f"{runner.term.name if runner else '—'}) held-out gain {gain:.1f}")
+        return winner, added, comparison, None
+    return None, None, comparison, None
+
+
+def update_reported(added: list[AddedTerm], layout: Layout, x: np.ndarray, jac: np.ndarray) -> None:
+    """Earlier terms were refitted jointly: report their current values and errors."""
+    se = np.sqrt(np.clip(np.diag(covariance(jac)), 0, None))
+    for term_result in added:
+        term = get_term(term_result.effect)
+        for i, (owner, key) in enumerate(layout.names):
+            if owner == term.name:
+                term_result.params[key] = term.spec(key).wrap(float(x[i]))
+                term_result.uncertainty[key] = float(se[i])
