@@ -31,7 +31,7 @@ from scipy import ndimage, signal
 
 @dataclass
 class Geometry:
-    size_px: int = 192
+    size_px: int = 128
     supersample: int = 2
     pitch_mm: float = 0.1
     sdd_mm: float = 1200.0
