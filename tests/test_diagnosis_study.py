@@ -41,6 +41,9 @@ def test_concealed_heel_is_named_first():
     assert row["named"][:1] == ["heel_effect"], row
 
 
-def test_stray_light_is_unexplained_not_a_library_term():
+def test_stray_light_is_never_named_without_a_flag():
+    # additive light from a corner: either unexplained, or a smooth-field term flagged as not
+    # separable from additive light (with the acquisition that would separate them)
     row = _run("stray_light@20")
-    assert row["unexplained"] and row["named"] == [], row
+    assert (row["unexplained"] and row["named"] == []) or row["ambiguous"] == row["named"], row
+    assert row["runner_up"] in ([], ["smooth_additive"]), row

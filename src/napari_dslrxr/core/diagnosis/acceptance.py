@@ -110,9 +110,11 @@ def _start_from_candidate(term: PhysicsTerm, cand: dict, grid: ChainGrid) -> dic
     return start
 
 
-#: Terms that are smooth fields over the image, which stray light or haze could mimic; the
-#: others (PSF, path, camera, geometry) have signatures a smooth field does not produce.
-SMOOTH_FIELD_TERMS = frozenset({"heel_effect", "inverse_square", "vignetting", "scatter"})
+#: Terms that are smooth fields over the whole image, which stray light or haze could mimic;
+#: the others (PSF, path, camera, geometry, and scatter, which follows the object) have
+#: signatures a smooth field does not produce (a smooth field does absorb a wide scatter in a
+#: small field, so scatter is not held to this test).
+SMOOTH_FIELD_TERMS = frozenset({"heel_effect", "inverse_square", "vignetting"})
 
 
 def _delta_bic_beyond(problem: Problem, trial: _Trial, additive: _Trial, opts: DiagnosisOptions,
@@ -184,8 +186,8 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
     passing = [t for t in trials if t.delta_bic > opts.accept_delta_bic]
     if not passing:
         return None, None, comparison, None
-    # A library term must explain more than a generic smooth additive light field would: fitted
-    # on top of that field it must still gain ΔBIC > threshold. Stray light or haze (outside
+    # A smooth-field library term must, fitted on top of a generic smooth additive light field,
+    # still gain ΔBIC > threshold. Stray light or haze (outside
     # the library) is then reported unexplained instead of being credited to heel, vignetting
     # or inverse square; a multiplicative term (heel, vignetting) still differs from additive
     # light in the attenuated regions, and a second effect in the same round does not hide it.
@@ -200,10 +202,16 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
                   if winner.term.name in SMOOTH_FIELD_TERMS else float("inf"))
         if np.isfinite(beyond):
             comparison.append({"effect": winner.term.name, "delta_bic_beyond_smooth_light": round(beyond, 2)})
+        like_smooth_light = False
         if beyond <= opts.accept_delta_bic:
-            say(f"{winner.term.name}: ΔBIC {beyond:.1f} beyond a smooth additive light field — not accepted")
-            only_smooth_light += 1
-            continue
+            if winner.delta_bic < additive.delta_bic - opts.accept_delta_bic:
+                say(f"{winner.term.name}: ΔBIC {beyond:.1f} beyond a smooth additive light field, which "
+                    f"explains more — not accepted")
+                only_smooth_light += 1
+                continue
+            # as good as the 14-parameter generic field and simpler: named, but not separable
+            # from additive light in this recording
+            like_smooth_light = True
         gain = _heldout_gain(problem, layout, x, winner, train, test)
         if gain <= 0:
             say(f"{winner.term.name}: held-out χ² worse by {-gain:.1f} — not accepted")
@@ -222,6 +230,11 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
         if ambiguous:
             separating = (f"{winner.term.name}: {winner.term.separating}; "
                           f"{runner.term.name}: {runner.term.separating}")
+        if like_smooth_light:
+            ambiguous, runner = True, additive
+            separating = (f"{winner.term.name}: {winner.term.separating}; smooth additive light (stray "
+                          "light, haze): a frame with the object moved or removed (a fluence or lens field "
+                          "scales with the transmission, additive light does not)")
         n_dof = problem.n_effective - len(winner.x)
         added = AddedTerm(winner.term.name, params, unc, winner.delta_bic, winner.chi2 / n_dof,
                           winner.score, chi2_now - winner.chi2, float(gain),
