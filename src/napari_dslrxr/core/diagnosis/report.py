@@ -142,6 +142,8 @@ def render_html(result: DiagnosisResult, title: str = "dslrxr mismatch diagnosis
         if i < len(result.comparisons) and result.comparisons[i]:
             refits = "; refitted ΔBIC: " + ", ".join(
                 f"{c['effect']}{' (generic)' if c.get('generic') else ''} {c['delta_bic']:.1f}"
+                if "delta_bic" in c else
+                f"{c['effect']} beyond a smooth additive field {c['delta_bic_beyond_smooth_light']:.1f}"
                 for c in result.comparisons[i])
         ranking_rows.append(f"<li>round {i + 1}: {html.escape(top + refits)}</li>")
     names = [str(n) for n in input_names]
