@@ -37,8 +37,11 @@ def test_simulate_then_diagnose_names_the_injected_term(tmp_path, capsys):
     data = tifffile.imread(rec)
     assert data.shape == (96, 96) and data.dtype == np.float32
     assert json.loads(rec.with_name("rec.tif.json").read_text())["parameters"]["seed"] == 4
-    assert main(["diagnose", str(scene), str(rec), "-o", str(tmp_path / "rep")]) == 0
+    assert main(["diagnose", str(scene), str(rec), "-o", str(tmp_path / "rep"), "--binning", "1"]) == 0
     result = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
+    assert json.loads((tmp_path / "rep" / "diagnosis_details.json").read_text())["binning"] == 1
+    assert set(result["registration"]) == {"shift_x_px", "shift_y_px", "scale", "rotation_deg"}
+    assert result["added"][0]["runner_up"]
     assert [a["effect"] for a in result["added"]] == ["mirror_ghost"]
     assert abs(result["added"][0]["params"]["shift_mm"] - 0.4) < 0.05
     assert (tmp_path / "rep" / "report.html").is_file()
@@ -61,3 +64,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     io.write_tiff(tmp_path / "small.tif", np.zeros((32, 32), np.float32))
     assert main(["diagnose", str(scene), str(tmp_path / "small.tif"), "-o", str(tmp_path / "rep")]) == 2
     assert "does not match" in capsys.readouterr().err
+    assert main(["diagnose", str(scene), str(tmp_path / "small.tif"), "-o", str(tmp_path / "rep"),
+                 "--binning", "half"]) == 2
+    err = capsys.readouterr().err
+    assert "--binning must be 'auto' or an integer >= 1" in err and err.count("\n") == 1

@@ -60,6 +60,9 @@ def register(app: typer.Typer) -> None:
         candidates: Optional[str] = typer.Option(
             None, "--candidates", help=option_help("diagnose", "candidates",
                                                    "comma-separated library terms to consider")),
+        binning: str = typer.Option(
+            "auto", "--binning", help="Block-averaging of the fit: auto (large frames binned while the "
+                                      "blur stays >= 1 binned px) or an integer N >= 1."),
     ) -> None:
         """Locate and name what the base model of the scene leaves out of a recording."""
         from ..core import diagnosis, io
@@ -76,13 +79,17 @@ def register(app: typer.Typer) -> None:
         data = loaded.data
         if data.ndim != 2:
             raise InputError(recording, f"diagnosis needs a single-channel recording, got shape {data.shape}")
-        result = diagnosis.diagnose_scene(sc, data, settings.options())
+        from dataclasses import replace
+
+        result = diagnosis.diagnose_scene(
+            sc, data, replace(settings.options(), binning=diagnosis.parse_binning(binning)))
         inputs = [scene, recording] + ([sc.thickness_path] if sc.thickness_path else []) + (
             [params_file] if params_file is not None else [])
         report.write_report(result, output, inputs=inputs,
                             parameters={"scene": str(scene), "recording": str(recording),
                                         "max_terms": settings.max_terms,
-                                        "candidates": tuple(settings.candidates) or None},
+                                        "candidates": tuple(settings.candidates) or None,
+                                        "binning": binning, "binning_used": result.binning},
                             timings_s={"diagnose": time.perf_counter() - t0})
         typer.echo(result.message)
         typer.echo(f"base chi2/dof {result.base_chi2_per_dof:.4f} -> final {result.final_chi2_per_dof:.4f}; "

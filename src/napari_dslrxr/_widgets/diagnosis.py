@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from magicgui.widgets import ComboBox, Container, FileEdit, PushButton, create_widget
 
-from ..core.diagnosis import DiagnosisOptions, DiagnosisResult, diagnose_scene, multiscale_maps
+from ..core.diagnosis import DiagnosisOptions, DiagnosisResult, diagnose_scene, multiscale_maps, parse_binning
 from ..core.errors import ParameterError
 from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
@@ -52,12 +52,20 @@ def summary_text(result: DiagnosisResult) -> str:
                            for k, v in term.params.items())
         confusable = "; confusable with " + ", ".join(f"{n} ({c:.2f})" for n, c in term.confusable_with) \
             if term.confusable_with else ""
+        runner = f"; runner-up {term.runner_up} (ΔBIC {term.runner_up_delta_bic:.1f})" if term.runner_up else ""
+        ambiguous = f"; AMBIGUOUS — separate by: {term.separating}" if term.ambiguous else ""
+        bound = f"; at bound (not an estimate): {', '.join(term.at_bound)}" if term.at_bound else ""
         lines.append(f"+ {term.effect}: {params} (ΔBIC {term.delta_bic:.1f}, held-out Δχ² "
-                     f"{term.heldout_gain:.1f}){confusable}")
-    lines.append(f"noise: var = {result.noise_poisson_gain_dn:.3g}·(μ − b) + {result.noise_read_dn:.3g}² DN²")
+                     f"{term.heldout_gain:.1f}){runner}{ambiguous}{bound}{confusable}")
+    lines.append(f"noise: var = {result.noise_poisson_gain_dn:.3g}·(μ − b) + {result.noise_read_dn:.3g}² DN², "
+                 f"lag-1 correlation {result.noise.get('lag1_correlation', 0.0):.2f}")
+    if result.registration:
+        reg = result.registration
+        lines.append(f"registration: shift ({reg.get('shift_x_px', 0):+.3f}, {reg.get('shift_y_px', 0):+.3f}) px, "
+                     f"scale {reg.get('scale', 0):+.2e}, rotation {reg.get('rotation_deg', 0):+.3f}°")
     lines.append(f"mismatch regions (r0, c0, r1, c1 px): {result.regions or 'none'}")
     if result.unexplained:
-        lines.append(f"unexplained structure at {result.unexplained_regions}")
+        lines.append(f"unexplained: {'; '.join(result.signatures)} at {result.unexplained_regions}")
     return "\n".join(lines)
 
 
@@ -75,6 +83,9 @@ class DiagnosisWidget(Container):
         self._thickness = create_widget(annotation="napari.layers.Image | None", label="or thickness layer")
         self._thickness.tooltip = "object thickness map (mm) of the scene when no scene file is given"
         self._max_terms = param_widget(DiagnosisOptions, "max_terms", label="max added effects")
+        self._binning = ComboBox(choices=["auto", "1", "2", "4", "8"], value="auto", label="binning",
+                                 tooltip="block-averaging of the fit; auto keeps the blur at least one binned "
+                                         "pixel (large frames)")
         self._run = PushButton(text="Diagnose", tooltip="fit the scene to the recording and name the effects "
                                                         "the scene leaves out")
         self._job = JobPanel(tooltip="stop the diagnosis at its next step")
@@ -87,7 +98,8 @@ class DiagnosisWidget(Container):
         self._open = PushButton(text="Open report", enabled=False, tooltip="show report.html in the web browser")
         self._restore = restore_defaults_button(lambda: setattr(self._max_terms, "value",
                                                                 DiagnosisOptions().max_terms))
-        super().__init__(widgets=[self._recording, self._scene_file, self._thickness, self._max_terms, self._run,
+        super().__init__(widgets=[self._recording, self._scene_file, self._thickness, self._max_terms,
+                                  self._binning, self._run,
                                   *self._job.widgets, self._readout, self._report_dir, self._write, self._open,
                                   self._restore])
         self.result: DiagnosisResult | None = None
@@ -152,7 +164,8 @@ class DiagnosisWidget(Container):
             raise ParameterError(f"{layer.name}: the diagnosis needs a single-channel recording, "
                                  f"got shape {recording.shape}")
         scene = self.scene()
-        options = DiagnosisOptions(max_terms=int(self._max_terms.value))
+        options = DiagnosisOptions(max_terms=int(self._max_terms.value),
+                                   binning=parse_binning(self._binning.value))
         self._input_names.insert(0, f"recording layer '{layer.name}' ({recording.shape[1]}x{recording.shape[0]} px)")
         self._run.enabled = False
         self._readout.value = "diagnosing..."

@@ -29,11 +29,14 @@ def glare_result():
 def test_report_files_shapes_and_offline_html(glare_result, tmp_path):
     paths = write_report(glare_result, tmp_path / "rep", parameters={"x": 1})
     data = json.loads(paths["diagnosis"].read_text())
-    assert set(data) == {"base", "mismatch", "added", "final", "unexplained"}
+    assert set(data) == {"base", "registration", "noise", "mismatch", "added", "final", "unexplained",
+                         "unexplained_signatures"}
     assert set(data["base"]) == {"chi2_per_dof", "bic"}
     assert isinstance(data["mismatch"]["regions"], list)
     assert data["added"][0]["effect"] == "veiling_glare"
-    assert set(data["added"][0]) == {"effect", "params", "uncertainty", "delta_bic", "chi2_per_dof"}
+    assert {"effect", "params", "uncertainty", "delta_bic", "chi2_per_dof", "runner_up", "runner_up_delta_bic",
+            "ambiguous"} <= set(data["added"][0])
+    assert "runner-up" in paths["report"].read_text()
     assert data["final"]["chi2_per_dof"] < data["base"]["chi2_per_dof"]
     z = tifffile.imread(paths["residual_base"])
     assert z.dtype == np.float32 and z.shape == (96, 96)

@@ -20,7 +20,8 @@ import numpy as np
 from .. import io
 from ..io import provenance
 from ..simulation.physics_terms import LIBRARY_BY_NAME
-from .mismatch import DiagnosisResult, multiscale_maps
+from .locating import multiscale_maps
+from .result import DiagnosisResult
 
 PROFILE_LABELS = {
     "edge_distance_px": "signed distance to edges (px, + = open side)",
@@ -124,14 +125,27 @@ def render_html(result: DiagnosisResult, title: str = "dslrxr mismatch diagnosis
         params = ", ".join(f"{k} = {v:.5g} ± {a.uncertainty.get(k, float('nan')):.2g}"
                            for k, v in a.params.items())
         conf = ", ".join(f"{n} ({c:.2f})" for n, c in a.confusable_with) or "—"
+        if a.runner_up:
+            conf += f"<br>runner-up: {html.escape(a.runner_up)} (ΔBIC {a.runner_up_delta_bic:.1f})"
+        if a.ambiguous:
+            conf += f"<br><b>ambiguous</b> — separate by: {html.escape(a.separating)}"
+        if a.at_bound:
+            params += f" [{', '.join(a.at_bound)}: at bound, not an estimate]"
         rows.append(f"<tr><td>{html.escape(a.effect)}</td><td>{html.escape(params)}</td>"
                     f"<td>{a.delta_bic:.1f}</td><td>{a.heldout_gain:.1f}</td><td>{a.chi2_per_dof:.4f}</td>"
-                    f"<td>{html.escape(conf)}</td><td>{html.escape(term.physics)}<br><i>separate by: "
+                    f"<td>{conf}</td><td>{html.escape(term.physics)}<br><i>separate by: "
                     f"{html.escape(term.separating)}</i></td></tr>")
     ranking_rows = []
     for i, ranking in enumerate(result.rankings):
         top = ", ".join(f"{r['effect']} (S {r['score']:.1f}, ΔBIC≈{r['delta_bic_est']:.1f})" for r in ranking[:5])
-        ranking_rows.append(f"<li>round {i + 1}: {html.escape(top)}</li>")
+        refits = ""
+        if i < len(result.comparisons) and result.comparisons[i]:
+            refits = "; refitted ΔBIC: " + ", ".join(
+                f"{c['effect']}{' (generic)' if c.get('generic') else ''} {c['delta_bic']:.1f}"
+                if "delta_bic" in c else
+                f"{c['effect']} beyond a smooth additive field {c['delta_bic_beyond_smooth_light']:.1f}"
+                for c in result.comparisons[i])
+        ranking_rows.append(f"<li>round {i + 1}: {html.escape(top + refits)}</li>")
     names = [str(n) for n in input_names]
     about = (f"<p>Inputs: {html.escape('; '.join(names)) if names else 'not recorded'}"
              + (f"<br>Created: {html.escape(created)}" if created else "") + "</p>")
@@ -145,15 +159,19 @@ img{{max-width:100%;height:auto}}</style></head><body>
 <p><b>{html.escape(result.message)}</b></p>
 <p>Base model: χ²/dof {result.base_chi2_per_dof:.4f}, BIC {result.base_bic:.1f}; final χ²/dof
 {result.final_chi2_per_dof:.4f}; {result.n_pixels} pixels fitted (binning {result.binning}×).
-Noise model from the recording: var = {result.noise_poisson_gain_dn:.4g}·(μ − b) +
-{result.noise_read_dn:.3g}² DN². Mismatch regions (r0, c0, r1, c1): {result.regions or 'none'}.
-Unexplained: {'yes, at ' + str(result.unexplained_regions) if result.unexplained else 'no'}.</p>
+Noise model ({html.escape(str(result.noise.get('source', 'residual')))}): var = {result.noise_poisson_gain_dn:.4g}·(μ − b) +
+{result.noise_read_dn:.3g}² DN², lag-1 correlation {result.noise.get('lag1_correlation', 0.0):.2f}
+({'white' if result.noise.get('white', True) else 'prewhitened'}).
+Registration: {html.escape(', '.join(f'{k} {v:+.4g}' for k, v in result.registration.items()) or 'off')}.
+Mismatch regions (r0, c0, r1, c1): {result.regions or 'none'}.
+Unexplained: {html.escape('; '.join(result.signatures)) + ' at ' + str(result.unexplained_regions)
+              if result.unexplained else 'no (every residual test passes)'}.</p>
 <h2>Added terms</h2>
 <table><tr><th>effect</th><th>parameters ± SE</th><th>ΔBIC</th><th>held-out Δχ²</th><th>χ²/dof</th>
 <th>confusable with</th><th>physics</th></tr>{''.join(rows) or '<tr><td colspan=7>none</td></tr>'}</table>
 <h2>Residual maps (before / after)</h2><img alt="residual maps" src="data:image/png;base64,{maps_b64}">
 <h2>Residual profiles</h2><img alt="residual profiles" src="data:image/png;base64,{prof_b64}">
-<h2>Score-test rankings</h2><ul>{''.join(ranking_rows)}</ul>
+<h2>Score-test rankings and refitted comparisons</h2><ul>{''.join(ranking_rows)}</ul>
 </body></html>
 """
 

@@ -410,7 +410,11 @@ def simulate_recording(scene: Scene, *, effects: dict[str, dict[str, float]] | N
     for name, params in (effects or {}).items():
         all_effects[name] = validate_params(get_term(name), params)
     terms = [(get_term(n), p) for n, p in all_effects.items()]
-    model = ChainModel(scene.thickness_mm, scene.grid())
+    grid = scene.grid()
+    # A supersampled object is blurred before pixel integration (most of the blur on the fine
+    # grid); blurring only after block-averaging would alias its sharp edges.
+    sigma_px = np.hypot(scene.focal_spot_sigma_mm * grid.magnification_minus_one, scene.detector_sigma_mm) / grid.pitch_mm
+    model = ChainModel(scene.thickness_mm, grid, 0.6 * sigma_px if scene.supersample > 1 else 0.0)
     expected = model.expected(scene.base_params(), terms)
     if scene.cfa:
         # RGGB plane gains of a green-emitting screen seen through a Bayer filter

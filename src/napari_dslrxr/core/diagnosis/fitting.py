@@ -1,0 +1,207 @@
+"""Least squares on the prewhitened residual: the parameter layout (base, registration and
+term parameters with their bounds), the problem (recording, mask, noise model, chain model)
+and a Levenberg–Marquardt solver on the small normal equations."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..simulation.physics_terms import ChainGrid, PhysicsTerm
+from ..simulation.simulator import ChainModel
+from . import noise as noise_mod
+from .terms import physical_bounds
+
+BASE_FREE = ("offset_dn", "gain_dn", "mu_per_mm", "detector_sigma_mm")
+
+
+@dataclass
+class Layout:
+    """Free parameters: base names plus (term, param) pairs, with bounds and FD steps.
+
+    ``terms`` starts with the registration terms (part of the base model), then library terms.
+    """
+
+    base_fixed: dict[str, float]
+    terms: list[PhysicsTerm]
+    names: list[tuple[str, str]]
+    lower: np.ndarray
+    upper: np.ndarray
+    steps: np.ndarray
+    free_base: tuple[str, ...] = BASE_FREE
+
+    @classmethod
+    def build(cls, base: dict[str, float], terms: list[PhysicsTerm], grid: ChainGrid,
+              free_base: tuple[str, ...] = BASE_FREE) -> "Layout":
+        names, lo, hi, st = [], [], [], []
+        for key in free_base:
+            names.append(("base", key))
+            value = abs(base[key])
+            if key == "offset_dn":
+                lo.append(-np.inf), hi.append(np.inf), st.append(0.5)
+            elif key == "detector_sigma_mm":
+                lo.append(1e-5), hi.append(np.inf), st.append(max(1e-4, 1e-3 * value))
+            else:
+                lo.append(1e-9), hi.append(np.inf), st.append(max(1e-8, 1e-4 * value))
+        for term in terms:
+            bounds = physical_bounds(term, grid)
+            for spec in term.params:
+                names.append((term.name, spec.name))
+                low, high = bounds.get(spec.name, spec.prior)
+                lo.append(low), hi.append(high), st.append(spec.step)
+        layout = cls(dict(base), list(terms), names, np.array(lo, float), np.array(hi, float),
+                     np.array(st, float))
+        layout.free_base = tuple(free_base)
+        return layout
+
+    def unpack(self, x: np.ndarray) -> tuple[dict, list[tuple[PhysicsTerm, dict]]]:
+        base = dict(self.base_fixed)
+        per_term: dict[str, dict] = {t.name: {} for t in self.terms}
+        for (owner, key), value in zip(self.names, x):
+            if owner == "base":
+                base[key] = float(value)
+            else:
+                per_term[owner][key] = float(value)
+        return base, [(t, per_term[t.name]) for t in self.terms]
+
+    def pack(self, base: dict, term_params: dict[str, dict]) -> np.ndarray:
+        return np.array([base[k] if o == "base" else term_params[o][k] for o, k in self.names])
+
+    def index(self, owner: str, key: str) -> int:
+        return self.names.index((owner, key))
+
+
+class Problem:
+    """Recording, mask, noise model and chain model of one diagnosis.
+
+    The fitted residual is the prewhitened normalised residual ``W[(y - mu) / sqrt(v)]`` at the
+    unmasked pixels (``W`` = identity for white noise).
+    """
+
+    def __init__(self, y: np.ndarray, model: ChainModel, mask: np.ndarray):
+        self.y = y
+        self.model = model
+        self.mask = mask
+        self.noise: noise_mod.NoiseModel | None = None
+        self.wsqrt = np.ones_like(y)
+        self.n = int(mask.sum())
+
+    def set_noise(self, noise: noise_mod.NoiseModel, expected: np.ndarray, offset: float) -> None:
+        self.noise = noise
+        self.wsqrt = 1.0 / np.sqrt(noise.variance(expected, offset))
+
+    @property
+    def n_effective(self) -> float:
+        """Expected χ² of the true model: unmasked pixels × measured whitened noise variance."""
+        return self.n * (self.noise.effective_fraction if self.noise is not None else 1.0)
+
+    def whiten_field(self, field_: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+        """Prewhiten a weighted field (zero outside the mask) and take the selected pixels."""
+        m = self.mask if sel is None else sel
+        u = np.where(self.mask, field_, 0.0)
+        if self.noise is not None and not self.noise.is_white:
+            u = self.noise.whiten(u)
+        return u[m]
+
+    def whitened(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+        mu = self.model.expected(*layout.unpack(x))
+        return self.whiten_field((self.y - mu) * self.wsqrt, sel)
+
+    def jacobian(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+        """Jacobian of the whitened residual: analytic for offset and gain, else forward differences."""
+        base, terms = layout.unpack(x)
+        mu = self.model.expected(base, terms)
+        f0 = self.whiten_field((self.y - mu) * self.wsqrt, sel)
+        jac = np.empty((f0.size, x.size))
+        for j, (owner, key) in enumerate(layout.names):
+            if owner == "base" and key == "offset_dn":
+                jac[:, j] = self.whiten_field(-self.wsqrt, sel)
+            elif owner == "base" and key == "gain_dn":
+                jac[:, j] = self.whiten_field(-(mu - base["offset_dn"]) / base["gain_dn"] * self.wsqrt, sel)
+            else:
+                h = layout.steps[j] if x[j] + layout.steps[j] <= layout.upper[j] else -layout.steps[j]
+                xj = x.copy()
+                xj[j] += h
+                jac[:, j] = (self.whitened(layout, xj, sel) - f0) / h
+        return jac
+
+    def fit(self, layout: Layout, x0: np.ndarray, sel: np.ndarray | None = None, max_nfev: int = 40):
+        """Bounded least squares; returns ``(x, χ², Jacobian at x)``."""
+        return levenberg_marquardt(lambda x: self.whitened(layout, x, sel),
+                                    lambda x: self.jacobian(layout, x, sel),
+                                    x0, layout.lower, layout.upper, max_nfev)
+
+
+def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: float = 1e-9):
+    """Levenberg–Marquardt on the small normal equations, with an active set for the bounds.
+
+    The residual vectors are long (every pixel) and the parameters few (≤ ~30): ``JᵀJ`` is a
+    tiny matrix, so each step costs one Jacobian, not an SVD of it. Parameters at a bound whose
+    gradient points outward are held for that step. Stops when χ² improves by less than
+    ``max(1e-3, rel_tol·χ²)`` (far below what a BIC comparison resolves) or after ``max_nfev``
+    residual evaluations.
+    """
+    x = np.clip(np.asarray(x0, float), lower, upper)
+    r = fun(x)
+    chi2 = float(r @ r)
+    nfev, lam = 1, 1e-3
+    j = jac(x)
+    while nfev < max_nfev:
+        a = j.T @ j
+        g = j.T @ r
+        at_low = (x <= lower) & (g > 0)
+        at_high = (x >= upper) & (g < 0)
+        free = ~(at_low | at_high)
+        if not free.any():
+            break
+        af, gf = a[np.ix_(free, free)], g[free]
+        diag = np.maximum(np.diag(af), 1e-30)
+        accepted = False
+        while nfev < max_nfev:
+            step = np.zeros_like(x)
+            try:
+                step[free] = np.linalg.solve(af + lam * np.diag(diag), -gf)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            x_new = np.clip(x + step, lower, upper)
+            r_new = fun(x_new)
+            nfev += 1
+            chi2_new = float(r_new @ r_new)
+            if np.isfinite(chi2_new) and chi2_new < chi2:
+                accepted = True
+                break
+            lam *= 4.0
+            if lam > 1e12:
+                break
+        if not accepted:
+            break
+        gain = chi2 - chi2_new
+        x, r, chi2 = x_new, r_new, chi2_new
+        lam = max(lam / 3.0, 1e-9)
+        j = jac(x)
+        if gain < max(1e-3, rel_tol * chi2):
+            break
+    return x, chi2, j
+
+
+def covariance(jac: np.ndarray) -> np.ndarray:
+    jtj = jac.T @ jac
+    try:
+        return np.linalg.inv(jtj)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(jtj)
+
+
+def orthonormal(columns: np.ndarray, reference_norm: float, rel_tol: float = 1e-4) -> np.ndarray:
+    """Orthonormal basis of the column space, dropping directions below ``rel_tol`` of the norm.
+
+    QR of the tall matrix, then an SVD of the small triangular factor (cheap for n >> d).
+    """
+    if columns.shape[1] == 0:
+        return columns
+    q, r = np.linalg.qr(columns, mode="reduced")
+    u, s, _ = np.linalg.svd(r)
+    keep = s > rel_tol * max(reference_norm, 1e-300)
+    return q @ u[:, keep]

@@ -1,0 +1,147 @@
+"""Terms the diagnosis fits besides the physics library, and the scene's physical bounds.
+
+* **Registration** (always in the base model): a sub-pixel shift of the object on the detector
+  (exact, a phase ramp in the transfer function) and a small scale (magnification error) and
+  rotation about the image centre (first order: ``O = L - ∇L · δ(q)``; the displacements these
+  describe are a fraction of a pixel, where the first-order form is accurate). Without them a
+  0.1 px shift or a 0.05 % magnification error leaves edge dipoles that library terms absorb.
+* **Generic smooth competitors** (never named as physics): a multiplicative and an additive
+  2-D Legendre surface of degree 4. A library term is only credited with a smooth mismatch if
+  it explains it better (by BIC) than these do; otherwise the mismatch is reported unexplained.
+* **Physical bounds** of library terms from the scene (SDD, field size, plausible lenses and
+  physical magnitudes), tighter than the library's generic prior ranges.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..simulation.physics_terms import ChainGrid, ChainState, ParamSpec, PhysicsTerm
+
+P = ParamSpec
+
+
+def _apply_shift(state: ChainState, p: dict) -> None:
+    g = state.grid
+    sx, sy = p["shift_x_px"], p["shift_y_px"]
+    if sx == 0.0 and sy == 0.0:
+        return
+    ramp = g.cached(("registration_shift", sx, sy), lambda: (
+        np.exp(-2j * np.pi * sy * g.fy) * np.exp(-2j * np.pi * sx * g.fx)))
+    state.transfer = state.transfer * ramp
+
+
+def _apply_affine(state: ChainState, p: dict) -> None:
+    scale, rot = p["scale"], p["rotation_rad"]
+    if scale == 0.0 and rot == 0.0:
+        return
+    g = state.grid
+    gy, gx = np.gradient(state.light)
+    xs = g.x * g.half_size_px  # pixels from the image centre
+    ys = g.y * g.half_size_px
+    dx = scale * xs - rot * ys
+    dy = scale * ys + rot * xs
+    state.light = state.light - (gx * dx + gy * dy)
+
+
+REGISTRATION_SHIFT = PhysicsTerm(
+    "registration_shift", "psf",
+    (P("shift_x_px", 0.0, (-3.0, 3.0), 0.0, 0.01, unit="px"),
+     P("shift_y_px", 0.0, (-3.0, 3.0), 0.0, 0.01, unit="px")),
+    "shift_x_px", _apply_shift,
+    physics="Sub-pixel shift of the object on the detector (registration, fitted-grid pixels).")
+REGISTRATION_AFFINE = PhysicsTerm(
+    "registration_affine", "optics",
+    (P("scale", 0.0, (-0.01, 0.01), 0.0, 1e-5), P("rotation_rad", 0.0, (-0.02, 0.02), 0.0, 1e-5)),
+    "scale", _apply_affine,
+    physics="Magnification error and small rotation about the image centre (registration).")
+REGISTRATION = (REGISTRATION_SHIFT, REGISTRATION_AFFINE)
+
+
+def _legendre_basis(grid: ChainGrid, degree: int = 4) -> np.ndarray:
+    def make():
+        from numpy.polynomial import legendre
+
+        xs = grid.x / max(float(np.abs(grid.x).max()), 1e-9)
+        ys = grid.y / max(float(np.abs(grid.y).max()), 1e-9)
+        cols = []
+        for i in range(degree + 1):
+            for j in range(degree + 1 - i):
+                if i == 0 and j == 0:
+                    continue
+                ci, cj = np.zeros(i + 1), np.zeros(j + 1)
+                ci[i], cj[j] = 1.0, 1.0
+                cols.append(legendre.legval(ys, ci) * legendre.legval(xs, cj))
+        return np.stack([np.broadcast_to(c, grid.shape) for c in cols])
+    return grid.cached(("legendre", degree), make)
+
+
+def _surface(state: ChainState, p: dict) -> np.ndarray:
+    basis = _legendre_basis(state.grid)
+    coef = np.array([p[f"c{i:02d}"] for i in range(basis.shape[0])])
+    return np.tensordot(coef, basis, axes=1)
+
+
+def _apply_smooth_gain(state: ChainState, p: dict) -> None:
+    state.light = state.light * (1.0 + _surface(state, p))
+
+
+def _apply_smooth_additive(state: ChainState, p: dict) -> None:
+    state.light = state.light + _surface(state, p)
+
+
+_N_SMOOTH = 14  # Legendre products of total degree 1..4
+_COEFS = tuple(P(f"c{i:02d}", 0.0, (-1.0, 1.0), 0.0, 1e-3) for i in range(_N_SMOOTH))
+SMOOTH_GAIN = PhysicsTerm("smooth_gain", "optics", _COEFS, "c00", _apply_smooth_gain,
+                          physics="Generic smooth multiplicative field (not physics: a competitor).")
+SMOOTH_ADDITIVE = PhysicsTerm("smooth_additive", "camera", _COEFS, "c00", _apply_smooth_additive,
+                              physics="Generic smooth additive light (not physics: a competitor).")
+GENERIC_COMPETITORS = (SMOOTH_GAIN, SMOOTH_ADDITIVE)
+GENERIC_SIGNATURE = {"smooth_gain": "smooth multiplicative field not matching any library term",
+                     "smooth_additive": "smooth additive light (stray light / haze) not matching "
+                                        "any library term"}
+
+
+def inverse_square_strength(grid: ChainGrid) -> float:
+    """``s = (R_diag / SDD)^2`` of :func:`physics_terms._apply_inverse_square` for this field:
+    the strength the scene's geometry fixes (``R_diag`` = half diagonal of the field in mm)."""
+    half_diag_mm = np.sqrt(2.0) * grid.half_size_px * grid.pitch_mm
+    return float((half_diag_mm / grid.source_to_detector_mm) ** 2)
+
+
+def physical_bounds(term: PhysicsTerm, grid: ChainGrid) -> dict[str, tuple[float, float]]:
+    """Bounds for ``term``'s parameters that the scene and physics allow (subset of the prior).
+
+    * inverse square: strength ``(R_diag/SDD)²`` from the stated geometry, allowing an SDD down
+      to 0.8× the stated one (1.56× the strength); the foot point within the field.
+    * vignetting: a camera lens darkens toward the corners (``k1 ≤ 0.02``, ``|k| ≤ 0.5``,
+      cos⁴ of a 40° half-field gives k ≈ -0.4) with its axis near the sensor centre (±0.3).
+    * heel: at most ±30 % fluence change across the field.
+    * magnitudes: glare η ≤ 0.3, scatter-to-primary amplitude ≤ 1, camera non-linearity
+      |κ| ≤ 0.1, mirror ghost ε ≤ 0.1 (uncoated glass reflects ≈ 4-7 %), beam hardening
+      β ≤ 0.3, lens distortion |k1| ≤ 0.05, focal-spot lobes ≤ 0.8 mm apart.
+    """
+    if term.name == "inverse_square":
+        s = inverse_square_strength(grid)
+        return {"strength": (0.0, 1.5625 * s)}
+    table = {
+        "vignetting": {"k1": (-0.5, 0.02), "k2": (-0.5, 0.1), "centre_x": (-0.3, 0.3), "centre_y": (-0.3, 0.3)},
+        "heel_effect": {"h1": (-0.3, 0.3), "h2": (-0.3, 0.3)},
+        "veiling_glare": {"eta": (0.0, 0.3)},
+        "scatter": {"amplitude": (0.0, 1.0)},
+        "detector_gamma": {"kappa": (-0.1, 0.1)},
+        "mirror_ghost": {"epsilon": (0.0, 0.1)},
+        "beam_hardening": {"beta": (0.0, 0.3)},
+        "lens_distortion": {"k1": (-0.05, 0.05)},
+        "focal_spot_shape": {"half_separation_mm": (0.0, 0.8)},
+    }
+    return dict(table.get(term.name, {}))
+
+
+def probe_params(term: PhysicsTerm, grid: ChainGrid) -> dict[str, float]:
+    """Probe point of the score test inside the physical bounds."""
+    probe = term.probe_params()
+    for key, (lo, hi) in physical_bounds(term, grid).items():
+        if not lo <= probe[key] <= hi:
+            probe[key] = 0.5 * (lo + hi) if lo > 0 or hi < 0 else (hi if abs(hi) > abs(lo) else lo) * 0.5
+    return probe
