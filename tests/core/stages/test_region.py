@@ -192,6 +192,8 @@ def test_enhance_radiograph_uses_the_collimated_field(rng):
     h, w = 300, 400
     image, truth = _collimated_radiograph(rng, (h, w), (70, None, 60, None), 2.0)
     params = PipelineParams()
+    # the field's effect on the window alone: no compression onto the display curve
+    params.dynamic_range.max_clipped_percent = 100.0
     off = dataclasses.replace(params, region=dataclasses.replace(params.region, detect_collimation=False))
     white = dataclasses.replace(params, output=dataclasses.replace(params.output, outside_region="white"))
     with_field, without, white_out = (enhance_radiograph(image, p) for p in (params, off, white))

@@ -45,6 +45,16 @@ class RegionParams:
         Leave the direct-exposure (unattenuated) mode out of the value-of-interest histogram.
     polygon_xy : list of [x, y]
         User override of the screen corners (4 points, pixels, TL, TR, BR, BL); empty = detect.
+    min_border_contrast_sigma : float
+        A point of the screen's border counts as evidence when the screen just inside is
+        brighter than the surround just outside by this many pixel-noise sigmas (3 to 100).
+    min_border_coverage : float
+        Share of the border's length (sides along the frame's edge excluded) that must show
+        that contrast before a screen is accepted (0.3 to 1).
+    max_bright_surround : float
+        Largest share of the surround (away from the border) that may be as bright as the
+        screen's edge; a brighter surround means the candidate is anatomy, not a screen
+        (0 to 0.5).
     detect_collimation : bool
         For display radiographs (CR/DR, :func:`napari_dslrxr.core.pipeline.enhance_radiograph`
         and the contrast widget): find collimator blades with :func:`detect_collimation` and
@@ -69,6 +79,15 @@ class RegionParams:
         "help": "leave the unattenuated (direct-exposure) background out of the value-of-interest window"})
     polygon_xy: list = field(default_factory=list, metadata={
         "help": "user override of the screen corners [[x, y], ...] (4 points, px, TL TR BR BL); [] = detect"})
+    min_border_contrast_sigma: float = field(default=5.0, metadata={
+        "help": "border contrast (screen inside minus surround) that counts as evidence, in pixel-noise sigmas",
+        "unit": "sigma", "min": 3.0, "max": 100.0})
+    min_border_coverage: float = field(default=0.7, metadata={
+        "help": "share of the screen border's length that must show that contrast (else the whole frame is used)",
+        "unit": "fraction", "min": 0.3, "max": 1.0})
+    max_bright_surround: float = field(default=0.03, metadata={
+        "help": "largest share of the surround as bright as the screen's edge (else the whole frame is used)",
+        "unit": "fraction", "min": 0.0, "max": 0.5})
     detect_collimation: bool = field(default=True, metadata={
         "help": "display radiographs only: find collimator blades and use the exposed field as the region"})
     collimation_inset_px: float = field(default=10.0, metadata={
@@ -88,11 +107,15 @@ class Region:
         Corners (x, y) in pixels, order top-left, top-right, bottom-right, bottom-left.
     detected : bool
         False when the polygon came from the user or is the whole frame.
+    evidence : dict
+        What the detection found and how strongly (see :func:`screen_evidence`), or why
+        nothing was accepted (``"reason"``); empty for user polygons.
     """
 
     mask: np.ndarray
     polygon_xy: np.ndarray
     detected: bool = True
+    evidence: dict = field(default_factory=dict)
 
 
 def order_corners(points_xy: np.ndarray) -> np.ndarray:
@@ -169,62 +192,34 @@ def _refine_corners(contour: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return np.array(refined)
 
 
-def detect_screen(image: np.ndarray, params: RegionParams | None = None) -> Region:
-    """Find the exposed screen quadrilateral in a (flat-fielded) frame.
+def _noise_map(small: np.ndarray, tile_px: int = 16) -> np.ndarray:
+    """Pixel-noise sigma per ``tile_px`` tile (from the finest diagonal Haar band), at ``small``'s size.
 
-    Parameters
-    ----------
-    image : ndarray, (H, W) or (H, W, 3)
-        Linear intensity (counts); colour is summed over channels.
-    params : RegionParams, optional
-
-    Returns
-    -------
-    Region
-        Mask and corners at full resolution; the whole frame when detection is disabled
-        or nothing bright is found.
-
-    Raises
-    ------
-    ParameterError
-        A user polygon that is not 4 (x, y) points.
+    The diagonal detail of 2 x 2 blocks carries the noise and little of a smooth image; the
+    median per tile (1.4826 MAD of a zero-mean band) follows signal-dependent (Poisson) noise.
     """
-    params = params or RegionParams()
-    arr = np.asarray(image)
-    h, w = arr.shape[:2]
-    whole = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
-    if params.polygon_xy:
-        poly = np.asarray(params.polygon_xy, np.float64)
-        if poly.shape != (4, 2):
-            raise ParameterError(f"region.polygon_xy: expected 4 [x, y] points, got shape {poly.shape}")
-        poly = order_corners(poly)
-        return Region(polygon_mask((h, w), poly), poly, detected=False)
-    if not params.enabled:
-        return Region(np.ones((h, w), bool), whole, detected=False)
-    factor = max(1.0, max(h, w) / float(params.analysis_size_px))
-    source = arr if arr.dtype == np.float32 else arr.astype(np.float32)
-    # downsample first (area average), then sum the colour channels: no full-size copy
-    small = cv2.resize(source, (max(8, round(w / factor)), max(8, round(h / factor))), interpolation=cv2.INTER_AREA) \
-        if factor > 1 else source.copy()
-    if small.ndim == 3:
-        small = small.sum(axis=2)
-    small = cv2.GaussianBlur(small, (0, 0), 1.0)
-    top = float(np.percentile(small, 99.5))
-    if not top > 0:
-        return Region(np.ones((h, w), bool), whole, detected=False)
-    # log scale: attenuated object (dark inside the screen) stays above the unexposed frame
-    logged = np.log(np.maximum(small, 0) + 0.005 * top)
-    lo, hi = float(logged.min()), float(logged.max())
-    if hi - lo < 1e-6:
-        return Region(np.ones((h, w), bool), whole, detected=False)
-    scaled = np.round((logged - lo) / (hi - lo) * 255).astype(np.uint8)
-    _, binary = cv2.threshold(scaled, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    h, w = (small.shape[0] // 2) * 2, (small.shape[1] // 2) * 2
+    d = 0.5 * ((small[0:h:2, 0:w:2] - small[0:h:2, 1:w:2]) - (small[1:h:2, 0:w:2] - small[1:h:2, 1:w:2]))
+    np.abs(d, out=d)
+    b = max(2, tile_px // 2)
+    bh, bw = max(1, d.shape[0] // b), max(1, d.shape[1] // b)
+    tiles = d[: bh * b, : bw * b].reshape(bh, min(b, d.shape[0]), bw, min(b, d.shape[1]))
+    sigma = np.median(tiles.transpose(0, 2, 1, 3).reshape(bh, bw, -1), axis=2) * np.float32(1.4826)
+    # a flat (noise-free) tile must not give infinite contrast: floor at 1e-3 of the median level
+    floor = max(1e-3 * float(np.median(small)), 1e-9)
+    return cv2.resize(np.maximum(sigma, floor).astype(np.float32), (small.shape[1], small.shape[0]),
+                      interpolation=cv2.INTER_NEAREST)
+
+
+def _candidate_corners(small: np.ndarray, scaled: np.ndarray, threshold: float) -> np.ndarray | None:
+    """Four corners (small-image x, y) of the largest component above ``threshold`` in ``scaled``."""
+    binary = (scaled > threshold).astype(np.uint8)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)
     binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, kernel)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     if n <= 1:
-        return Region(np.ones((h, w), bool), whole, detected=False)
+        return None
     largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     component = (labels == largest).astype(np.uint8)
     # The log-scale Otsu split sits low on the blurred screen edge; re-threshold at half way
@@ -240,14 +235,260 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None) -> Regi
         if n2 > 1:
             component = (labels2 == 1 + int(np.argmax(stats2[1:, cv2.CC_STAT_AREA]))).astype(np.uint8)
     contours, _ = cv2.findContours(component, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return None
     contour = max(contours, key=cv2.contourArea)
     hull = cv2.convexHull(contour)
-    corners = _refine_corners(contour, _four_corners(hull))
+    return _refine_corners(contour, _four_corners(hull))
+
+
+def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
+                    params: RegionParams) -> dict:
+    """How strongly the image supports a screen quadrilateral (all on the analysis copy).
+
+    Along each side of the quadrilateral not lying on the frame's edge, at points every
+    pixel, the mean of the image 2-6 px inside minus the mean 2-6 px outside, over the local
+    pixel-noise sigma, is the border contrast. The screen is supported when that contrast
+    reaches ``min_border_contrast_sigma`` on at least ``min_border_coverage`` of the border's
+    length, and the surround (pixels beyond a margin of 4 px + 3 % of the screen's size) is
+    darker: at most ``max_bright_surround`` of it above the level half way between the
+    surround's median and the screen's rim. A border point counts only when the image just
+    outside it is close to the surround's level (within a quarter of the step), so a step from
+    bright to medium (direct exposure beside a limb) is no evidence.
+
+    Returns
+    -------
+    dict
+        ``accepted`` (bool), ``border_coverage``, ``border_contrast_sigma`` (median over the
+        border), ``bright_surround``, ``open_sides`` (the frame edges that cut the screen),
+        ``open_side_index`` (their sides, 0 = top-left to top-right, clockwise) and, when not
+        accepted, ``reason``.
+    """
+    h, w = small.shape
+    corners = order_corners(corners)
+    inward_offsets = np.arange(2.0, 7.0)
+    centre = corners.mean(axis=0)
+    quad = polygon_mask((h, w), corners).astype(np.uint8)
+    size = float(np.sqrt(max(quad.sum(), 1)))
+    margin = int(round(4 + 0.03 * size))
+    kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    surround = ~cv2.dilate(quad, kernel).astype(bool)
+    rim = quad.astype(bool) & ~cv2.erode(quad, kernel).astype(bool)
+    surround_level = float(np.median(small[surround])) if surround.any() else float(small.min())
+    ratios, open_sides, total_points = [], [], 0
+    for i in range(4):
+        a, b = corners[i], corners[(i + 1) % 4]
+        length = float(np.hypot(*(b - a)))
+        if length < 4:
+            continue
+        direction = (b - a) / length
+        normal = np.array([-direction[1], direction[0]])
+        if normal @ (centre - a) < 0:
+            normal = -normal  # points into the screen
+        t = np.arange(0.05 * length, 0.95 * length, 1.0)
+        points = a + t[:, None] * direction
+        # a side along the frame's edge is open: the frame cut the screen there, no surround to see
+        distances = np.stack([points[:, 0], points[:, 1], w - 1 - points[:, 0], h - 1 - points[:, 1]])
+        nearest = int(np.argmin(np.median(distances, axis=1)))
+        if np.median(distances[nearest]) < 3.0:
+            open_sides.append((i, ("left", "top", "right", "bottom")[nearest]))
+            continue
+        inside = _sample(small, points[:, None, :] + inward_offsets[None, :, None] * normal).mean(axis=1)
+        outside = _sample(small, points[:, None, :] - inward_offsets[None, :, None] * normal).mean(axis=1)
+        sigma = _sample(noise, points)
+        valid = np.isfinite(inside) & np.isfinite(outside) & np.isfinite(sigma)
+        # the step must go down to the surround's level: a step from bright to medium (direct
+        # exposure beside a limb, a lung beside the mediastinum) is anatomy, not a screen's edge
+        to_surround = (outside - surround_level) <= 0.25 * (inside - surround_level)
+        total_points += len(points)
+        ratios.append(np.where(valid & to_surround, (inside - outside) / np.maximum(sigma, 1e-12), 0.0))
+    evidence: dict = {"open_sides": [edge for _, edge in open_sides], "open_side_index": [i for i, _ in open_sides]}
+    if not ratios or total_points < 16:
+        evidence.update(accepted=False, border_coverage=0.0, border_contrast_sigma=0.0, bright_surround=None,
+                        reason="no side of the candidate lies inside the frame (no border to test)")
+        return evidence
+    ratio = np.concatenate(ratios)
+    coverage = float(np.mean(ratio >= params.min_border_contrast_sigma))
+    evidence["border_coverage"] = round(coverage, 3)
+    evidence["border_contrast_sigma"] = round(float(np.median(ratio)), 2)
+    bright = None
+    if np.count_nonzero(surround) >= 16 and np.count_nonzero(rim) >= 16:
+        edge_level = 0.5 * (surround_level + float(np.median(small[rim])))
+        bright = float(np.mean(small[surround] > edge_level))
+    evidence["bright_surround"] = None if bright is None else round(bright, 4)
+    reasons = []
+    if coverage < params.min_border_coverage:
+        reasons.append(f"border contrast >= {params.min_border_contrast_sigma:g} sigma on only "
+                       f"{100 * coverage:.0f} % of its length (needs {100 * params.min_border_coverage:.0f} %)")
+    if bright is not None and bright > params.max_bright_surround:
+        reasons.append(f"{100 * bright:.1f} % of the surround is as bright as the screen's edge "
+                       f"(at most {100 * params.max_bright_surround:.1f} %)")
+    evidence["accepted"] = not reasons
+    if reasons:
+        evidence["reason"] = "; ".join(reasons)
+    return evidence
+
+
+def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
+                  illumination: np.ndarray | None = None) -> Region:
+    """Find the exposed screen quadrilateral in a (flat-fielded) frame, only on strong evidence.
+
+    A candidate quadrilateral comes from the bright part of a log-scaled, downsampled copy
+    (Otsu threshold, largest component, convex hull, four corners refined by line fits). It
+    is accepted only when :func:`screen_evidence` finds a border of many noise sigmas along
+    most of its length and a darker surround; otherwise the whole frame is the region, so
+    anatomy is never blanked to satisfy the shape prior (a camera that framed only part of
+    the screen sees no surround at all).
+
+    Parameters
+    ----------
+    image : ndarray, (H, W) or (H, W, 3)
+        Linear intensity (counts); colour is summed over channels.
+    params : RegionParams, optional
+    illumination : ndarray, (H, W[, C]), optional
+        The flat-field denominator the image was divided by: the evidence is judged on the
+        light the camera saw (image x illumination), where the unexposed surround is dark (the
+        flat-field division would lift it towards the screen's level).
+
+    Returns
+    -------
+    Region
+        Mask and corners at full resolution; the whole frame when detection is disabled or
+        the evidence is too weak. ``evidence`` records the scores and, if nothing was
+        accepted, the reason.
+
+    Raises
+    ------
+    ParameterError
+        A user polygon that is not 4 (x, y) points.
+    """
+    params = params or RegionParams()
+    arr = np.asarray(image)
+    h, w = arr.shape[:2]
+    whole = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+
+    def nothing(reason: str, **extra) -> Region:
+        return Region(np.ones((h, w), bool), whole, detected=False, evidence={"accepted": False, **extra,
+                                                                               "reason": reason})
+
+    if params.polygon_xy:
+        poly = np.asarray(params.polygon_xy, np.float64)
+        if poly.shape != (4, 2):
+            raise ParameterError(f"region.polygon_xy: expected 4 [x, y] points, got shape {poly.shape}")
+        poly = order_corners(poly)
+        return Region(polygon_mask((h, w), poly), poly, detected=False, evidence={"source": "user polygon"})
+    if not params.enabled:
+        return Region(np.ones((h, w), bool), whole, detected=False, evidence={"source": "detection disabled"})
+    factor = max(1.0, max(h, w) / float(params.analysis_size_px))
+    size = (max(8, round(w / factor)), max(8, round(h / factor)))
+
+    def shrink(a: np.ndarray) -> np.ndarray:
+        a = a if a.dtype == np.float32 else a.astype(np.float32)
+        # downsample first (area average), then sum the colour channels: no full-size copy
+        return cv2.resize(a, size, interpolation=cv2.INTER_AREA) if factor > 1 else a.copy()
+
+    small = shrink(arr)
+    if illumination is not None:
+        light = shrink(np.asarray(illumination))
+        if light.ndim == 2 and small.ndim == 3:
+            light = light[..., None]
+        small = small * light if light.shape[:2] == small.shape[:2] else small
+    if small.ndim == 3:
+        small = small.sum(axis=2)
+    noise = _noise_map(small)
+    small = cv2.GaussianBlur(small, (0, 0), 1.0)
+    top = float(np.percentile(small, 99.5))
+    if not top > 0:
+        return nothing("the frame holds no light")
+    # log scale: attenuated object (dark inside the screen) stays above the unexposed frame
+    logged = np.log(np.maximum(small, 0) + 0.005 * top)
+    lo, hi = float(logged.min()), float(logged.max())
+    if hi - lo < 1e-6:
+        return nothing("the frame is uniform")
+    scaled = np.round((logged - lo) / (hi - lo) * 255).astype(np.uint8)
+    high, _ = cv2.threshold(scaled, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    # Two candidates: the bright class of a log-scale Otsu split, and everything above the
+    # dark class of a second split below it (when a large direct-exposure area takes the
+    # bright class, the screen is the union of the two brighter classes)
+    thresholds = [high]
+    darker = scaled[scaled <= high]
+    if darker.size > 16 and np.ptp(darker) > 2:
+        low, _ = cv2.threshold(darker.reshape(1, -1), 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        if low < high:
+            thresholds.append(low)
+    best, first = None, None
+    for threshold in thresholds:
+        corners = _candidate_corners(small, scaled, threshold)
+        if corners is None:
+            continue
+        evidence = screen_evidence(small, noise, corners, params)
+        area = cv2.contourArea(order_corners(corners).astype(np.float32))
+        if first is None:
+            first = (corners, evidence)
+        # the lower threshold wins only when it adds a real area (not just the blurred rim)
+        if evidence["accepted"] and (best is None or area > 1.1 * best[2]):
+            best = (corners, evidence, area)
+    if first is None:
+        return nothing("no bright area")
+    corners, evidence = (best[0], best[1]) if best is not None else first
     # pixel-centre coordinates of the small image -> full resolution
     corners = (corners + 0.5) * np.array([w / small.shape[1], h / small.shape[0]]) - 0.5
     corners = order_corners(corners)
+    if not evidence["accepted"]:
+        evidence.pop("open_side_index")
+        return nothing(evidence.pop("reason"), **{k: v for k, v in evidence.items() if k != "accepted"},
+                       candidate_xy=corners.round(1).tolist())
     poly = shrink_polygon(corners, params.shrink_fraction)
-    return Region(polygon_mask((h, w), poly), poly, detected=True)
+    # a side the frame cut has no rim to drop: put it on (or beyond) the frame's edge
+    edge_value = {"left": (0, -0.5, min), "top": (1, -0.5, min), "right": (0, w - 0.5, max), "bottom": (1, h - 0.5, max)}
+    for index, edge in zip(evidence.pop("open_side_index"), evidence["open_sides"], strict=True):
+        axis, value, pick = edge_value[edge]
+        for corner in (index, (index + 1) % 4):
+            poly[corner, axis] = pick(corners[corner, axis], value)
+    return Region(polygon_mask((h, w), poly), poly, detected=True, evidence=evidence)
+
+
+def direct_exposure_level(values: np.ndarray, *, at_foot: bool = False) -> float | None:
+    """Attenuation below which pixels are direct exposure (the unattenuated beam), or None.
+
+    The direct-exposure mode is the lowest-attenuation peak of the histogram (128 bins over
+    the 0.1-99.9 % range, smoothed over 5) when a valley below half its height separates it
+    from the object, the object rises well above the valley again, and at least 20 % of the
+    values lie above the valley. Returns the valley's lower bin edge, or with ``at_foot``
+    the lower edge of the peak's foot: the first bin after the peak within 3 % of the peak's
+    height above the valley (a conservative level: a plateau of thin tissue after the foot
+    counts as object).
+
+    Parameters
+    ----------
+    values : ndarray, float
+        Finite attenuation-domain values (high = more attenuation), any shape.
+    """
+    v = np.asarray(values, np.float32).ravel()
+    if v.size < 16:
+        return None
+    a, b = np.percentile(v, [0.1, 99.9])
+    if not b > a:
+        return None
+    hist, edges = np.histogram(v, bins=128, range=(float(a), float(b)))
+    smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
+    low_part = smooth[:48]  # direct exposure sits at the low-attenuation end
+    peak = int(np.argmax(low_part))
+    beyond = smooth[peak:]
+    if peak < 40 and beyond.size > 8:
+        valley = peak + int(np.argmin(beyond[: max(8, beyond.size // 2)]))
+        peak_height = smooth[peak]
+        # a real direct-exposure mode: a peak with a clear valley above it and object beyond
+        if (smooth[valley] < 0.5 * peak_height and smooth[valley:].max() > 2 * smooth[valley] + 1
+                and np.count_nonzero(v >= edges[valley]) > 0.2 * v.size):
+            if not at_foot:
+                return float(edges[valley])
+            # Thin soft tissue (the skin line of a limb) spreads as a low plateau from the
+            # peak's foot to the object, and the plateau's deepest bin may lie far into it
+            floor = smooth[valley] + 0.03 * (peak_height - smooth[valley])
+            foot = peak + int(np.argmax(smooth[peak:valley + 1] <= floor))
+            return float(edges[foot])
+    return None
 
 
 def voi_window(values: np.ndarray, *, low_percentile: float = 0.5, high_percentile: float = 99.5,
@@ -262,7 +503,7 @@ def voi_window(values: np.ndarray, *, low_percentile: float = 0.5, high_percenti
         Percentiles of the retained values mapped to 0 and 1.
     exclude_direct_exposure : bool
         Drop the lowest-attenuation mode (the unattenuated beam) when it is a distinct peak
-        separated from the object by a histogram valley.
+        separated from the object by a histogram valley (:func:`direct_exposure_level`).
 
     Returns
     -------
@@ -280,20 +521,10 @@ def voi_window(values: np.ndarray, *, low_percentile: float = 0.5, high_percenti
         raise InputError("region", "no valid pixels inside the region for the value-of-interest window")
     if v.size > 2_000_000:
         v = v[:: v.size // 1_000_000]
-    a, b = np.percentile(v, [0.1, 99.9])
-    if exclude_direct_exposure and b > a:
-        hist, edges = np.histogram(v, bins=128, range=(float(a), float(b)))
-        smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
-        low_part = smooth[:48]  # direct exposure sits at the low-attenuation end
-        peak = int(np.argmax(low_part))
-        beyond = smooth[peak:]
-        if peak < 40 and beyond.size > 8:
-            valley = peak + int(np.argmin(beyond[: max(8, beyond.size // 2)]))
-            peak_height = smooth[peak]
-            # a real direct-exposure mode: a peak with a clear valley above it and object beyond
-            if (smooth[valley] < 0.5 * peak_height and smooth[valley:].max() > 2 * smooth[valley] + 1
-                    and np.count_nonzero(v >= edges[valley]) > 0.2 * v.size):
-                v = v[v >= edges[valley]]
+    if exclude_direct_exposure:
+        level = direct_exposure_level(v)
+        if level is not None:
+            v = v[v >= level]
     lo, hi = (float(x) for x in np.percentile(v, [low_percentile, high_percentile]))
     if not hi > lo:
         hi = lo + 1e-6
