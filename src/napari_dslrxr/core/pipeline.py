@@ -98,7 +98,7 @@ def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> 
 
 def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, params: PipelineParams,
                   results: dict) -> np.ndarray:
-    from .stages.deconvolution import check_reg, deconvolve, estimate_regularisation
+    from .stages.deconvolution import check_reg, choose_regularisation, deconvolve
 
     # scale each channel to about [0, 1] over the region (the solver's expected range)
     chans = colour if colour.ndim == 3 else colour[..., None]
@@ -110,12 +110,18 @@ def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, para
     normalised = chans / scale
     solver_input = normalised if colour.ndim == 3 else normalised[..., 0]
     reg_used = check_reg(params.deblur.reg)
+    auto = None
     if reg_used == "auto":  # estimate here (once) so the sidecar records the number the solver used
-        reg_used = estimate_regularisation(solver_input, kernel, params.deblur.method)
+        auto = choose_regularisation(solver_input, kernel, params.deblur.method)
+        reg_used = auto.reg
+        results["warnings"].extend(f"deblurring: automatic regularisation unreliable: {text}"
+                                   for text in auto.warnings)
     out = deconvolve(solver_input, kernel, method=params.deblur.method, reg=reg_used)
     out = (out if out.ndim == 3 else out[..., None]) * scale
     results["deblur"] = {"kernel_shape": list(kernel.shape), "method": params.deblur.method,
                          "reg": params.deblur.reg, "reg_used": reg_used}
+    if auto is not None:
+        results["deblur"]["auto"] = auto.as_dict()
     return out if colour.ndim == 3 else out[..., 0]
 
 
