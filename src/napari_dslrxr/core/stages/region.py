@@ -47,7 +47,8 @@ class RegionParams:
         User override of the screen corners (4 points, pixels, TL, TR, BR, BL); empty = detect.
     min_border_contrast_sigma : float
         A point of the screen's border counts as evidence when the screen just inside is
-        brighter than the surround just outside by this many pixel-noise sigmas (3 to 100).
+        brighter than the surround just outside by this many noise sigmas of the measurement
+        (the step averaged over 9 px along the border and 5 px across each side; 3 to 100).
     min_border_coverage : float
         Share of the border's length (sides along the frame's edge excluded) that must show
         that contrast before a screen is accepted (0.3 to 1).
@@ -242,13 +243,18 @@ def _candidate_corners(small: np.ndarray, scaled: np.ndarray, threshold: float) 
     return _refine_corners(contour, _four_corners(hull))
 
 
+#: Border points averaged for one contrast measurement (px along the border).
+_BORDER_RUN_PX = 9
+
+
 def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
                     params: RegionParams) -> dict:
     """How strongly the image supports a screen quadrilateral (all on the analysis copy).
 
     Along each side of the quadrilateral not lying on the frame's edge, at points every
-    pixel, the mean of the image 2-6 px inside minus the mean 2-6 px outside, over the local
-    pixel-noise sigma, is the border contrast. The screen is supported when that contrast
+    pixel, the mean of the image 2-6 px inside minus the mean 2-6 px outside, averaged over
+    9 px along the border and divided by that average's noise (from the local pixel-noise
+    sigma), is the border contrast. The screen is supported when that contrast
     reaches ``min_border_contrast_sigma`` on at least ``min_border_coverage`` of the border's
     length, and the surround (pixels beyond a margin of 4 px + 3 % of the screen's size) is
     darker: at most ``max_bright_surround`` of it above the level half way between the
@@ -301,7 +307,12 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
         # exposure beside a limb, a lung beside the mediastinum) is anatomy, not a screen's edge
         to_surround = (outside - surround_level) <= 0.25 * (inside - surround_level)
         total_points += len(points)
-        ratios.append(np.where(valid & to_surround, (inside - outside) / np.maximum(sigma, 1e-12), 0.0))
+        # the step averaged over 9 px along the border and 5 px across on each side: its noise is
+        # sigma sqrt(2 / 45) for pixel noise sigma
+        step = np.where(valid, inside - outside, 0.0)
+        step = np.convolve(step, np.ones(_BORDER_RUN_PX) / _BORDER_RUN_PX, mode="same")
+        step_sigma = np.maximum(sigma, 1e-12) * np.sqrt(2.0 / (_BORDER_RUN_PX * len(inward_offsets)))
+        ratios.append(np.where(valid & to_surround, step / np.where(np.isfinite(step_sigma), step_sigma, np.inf), 0.0))
     evidence: dict = {"open_sides": [edge for _, edge in open_sides], "open_side_index": [i for i, _ in open_sides]}
     if not ratios or total_points < 16:
         evidence.update(accepted=False, border_coverage=0.0, border_contrast_sigma=0.0, bright_surround=None,
