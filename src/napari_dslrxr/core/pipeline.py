@@ -135,6 +135,31 @@ def _scale_to_voi_window(x: np.ndarray, sample: np.ndarray, params: PipelinePara
     return lo, hi
 
 
+def _may_hold_blades(display_oriented: np.ndarray, mask: np.ndarray, factor: float) -> bool:
+    """Cheap test before the blade search: does a side strip of the region attenuate like a blade?
+
+    A blade's band lies along a side of the region (the screen or the frame): the outer 5 %
+    strip of the region's bounding box on that side is then at least as dense as 95 % of the
+    region. When no side is, the search (and its imports) is skipped.
+    """
+    sh, sw = display_oriented.shape
+    small_mask = cv2.resize(mask.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST).astype(bool) \
+        if factor > 1 else mask
+    rows, cols = np.nonzero(small_mask.any(axis=1))[0], np.nonzero(small_mask.any(axis=0))[0]
+    if rows.size < 16 or cols.size < 16:
+        return False
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    dr, dc = max(2, (r1 - r0) // 20), max(2, (c1 - c0) // 20)
+    values = display_oriented[small_mask]
+    top = float(np.percentile(values[:: max(1, values.size // 200_000)], 95))
+    for strip in ((slice(r0, r0 + dr), slice(c0, c1)), (slice(r1 - dr, r1), slice(c0, c1)),
+                  (slice(r0, r1), slice(c0, c0 + dc)), (slice(r0, r1), slice(c1 - dc, c1))):
+        inside = small_mask[strip]
+        if np.count_nonzero(inside) >= 32 and float(np.median(display_oriented[strip][inside])) >= top:
+            return True
+    return False
+
+
 def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region, params: PipelineParams,
                       results: dict) -> tuple[np.ndarray, Region]:
     """Collimator blades on a camera frame: leave the unexposed bands out of the region.
@@ -144,12 +169,21 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     :func:`~napari_dslrxr.core.region.detect_collimation` finds them. The inset scales with
     the frame (``collimation_inset_px`` is for a 2000 px radiograph).
     """
-    display_oriented = attenuation if params.output.polarity == "bone_white" else -attenuation
-    inset = params.region.collimation_inset_px * min(1.0, max(attenuation.shape) / 2000.0)
-    field = detect_collimation(display_oriented, inset_px=inset)
+    h, w = attenuation.shape
+    # a copy of at most 2000 px a side is plenty for blades (and costs little on 24 Mpx frames)
+    factor = max(1.0, max(h, w) / 2000.0)
+    small = cv2.resize(attenuation, (max(16, round(w / factor)), max(16, round(h / factor))),
+                       interpolation=cv2.INTER_AREA) if factor > 1 else attenuation
+    display_oriented = small if params.output.polarity == "bone_white" else -small
     results["collimation"] = {"detected": False}
-    if not field.detected:
+    if not _may_hold_blades(display_oriented, mask, factor):
         return mask, region
+    inset = params.region.collimation_inset_px * min(1.0, max(h, w) / 2000.0) / factor
+    found = detect_collimation(display_oriented, inset_px=inset)
+    if not found.detected:
+        return mask, region
+    polygon = (found.polygon_xy + 0.5) * np.array([w / small.shape[1], h / small.shape[0]]) - 0.5
+    field = Region(polygon_mask((h, w), polygon), polygon) if factor > 1 else found
     combined = mask & field.mask
     band = mask & ~field.mask
     step = max(1, int(np.sqrt(attenuation.size / 1_000_000)))
@@ -159,7 +193,7 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     # Behind a blade the screen gets scatter only: the band must attenuate more than almost all
     # of the field, and get less than e^-1 (37 %) of the field's median light (a uniform stretch
     # of soft tissue at the frame's side, or the vignetting of a frame without a flat, does not)
-    sub = display_oriented[::step, ::step]
+    sub = attenuation[::step, ::step] if params.output.polarity == "bone_white" else -attenuation[::step, ::step]
     band_level = float(np.median(sub[beyond]))
     field_mid, field_top = (float(v) for v in np.percentile(sub[inside], [50, 95]))
     if band_level < field_top or abs(band_level - field_mid) < 1.0:

@@ -208,3 +208,15 @@ def test_enhance_radiograph_uses_the_collimated_field(rng):
     assert bone.any() and direct.any()
     spread = [out[bone].mean() - out[direct].mean() for out in (with_field, without)]
     assert spread[0] > spread[1] + 0.05, spread
+
+
+def test_sampling_many_points_beyond_the_remap_limit():
+    """More than 32767 samples (a 24 Mpx frame's blade profiles) in one call: no OpenCV error."""
+    from napari_dslrxr.core.region import _sample
+
+    image = np.add.outer(np.arange(100.0), 1000.0 * np.arange(120.0)).astype(np.float32)  # row + 1000 col
+    points = np.random.default_rng(0).uniform(0, 99, (50000, 2)).astype(np.float32)
+    values = _sample(image, points)
+    assert values.shape == (50000,)
+    np.testing.assert_allclose(values, points[:, 1] + 1000.0 * points[:, 0], rtol=1e-4)
+    assert np.isnan(_sample(image, np.array([[500.0, 5.0]], np.float32)))[0]

@@ -595,10 +595,17 @@ def _line_samples(shape: tuple[int, int], theta: float, rho: float, step_px: flo
 def _sample(image: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
     """Bilinear samples of a float32 image at (..., 2) (x, y) points; NaN outside the frame."""
     pts = np.asarray(points_xy, np.float32)
-    flat = pts.reshape(-1, 1, 2)
-    values = cv2.remap(image, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+    flat = pts.reshape(-1, 2)
+    n = len(flat)
+    # cv2.remap takes maps below 32767 a side: lay the points out as rows of 4096
+    cols = max(1, min(n, 4096))
+    rows = -(-n // cols)
+    grid = np.full((rows * cols, 2), -1.0e6, np.float32)  # padding samples fall outside: NaN
+    grid[:n] = flat
+    grid = grid.reshape(rows, cols, 2)
+    values = cv2.remap(image, grid[..., 0], grid[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                        borderValue=np.nan)
-    return values.reshape(pts.shape[:-1])
+    return values.reshape(-1)[:n].reshape(pts.shape[:-1])
 
 
 def _blade_score(small: np.ndarray, grid_xy: tuple[np.ndarray, np.ndarray], theta: float, rho: float,
