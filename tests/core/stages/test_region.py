@@ -212,7 +212,7 @@ def test_enhance_radiograph_uses_the_collimated_field(rng):
 
 def test_sampling_many_points_beyond_the_remap_limit():
     """More than 32767 samples (a 24 Mpx frame's blade profiles) in one call: no OpenCV error."""
-    from napari_dslrxr.core.region import _sample
+    from napari_dslrxr.core.stages.region import _sample
 
     image = np.add.outer(np.arange(100.0), 1000.0 * np.arange(120.0)).astype(np.float32)  # row + 1000 col
     points = np.random.default_rng(0).uniform(0, 99, (50000, 2)).astype(np.float32)
