@@ -140,7 +140,8 @@ def _may_hold_blades(display_oriented: np.ndarray, mask: np.ndarray, factor: flo
 
     A blade's band lies along a side of the region (the screen or the frame): the outer 5 %
     strip of the region's bounding box on that side is then at least as dense as 95 % of the
-    region. When no side is, the search (and its imports) is skipped.
+    region's middle (the box without its outer 20 %). When no side is, the search (and its
+    imports) is skipped.
     """
     sh, sw = display_oriented.shape
     small_mask = cv2.resize(mask.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST).astype(bool) \
@@ -150,7 +151,11 @@ def _may_hold_blades(display_oriented: np.ndarray, mask: np.ndarray, factor: flo
         return False
     r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
     dr, dc = max(2, (r1 - r0) // 20), max(2, (c1 - c0) // 20)
-    values = display_oriented[small_mask]
+    # the density to beat: 95 % of the region's middle (bands may cover much of its outer part)
+    middle = (slice(r0 + 4 * dr, r1 - 4 * dr), slice(c0 + 4 * dc, c1 - 4 * dc))
+    values = display_oriented[middle][small_mask[middle]]
+    if values.size < 16:
+        return True
     top = float(np.percentile(values[:: max(1, values.size // 200_000)], 95))
     for strip in ((slice(r0, r0 + dr), slice(c0, c1)), (slice(r1 - dr, r1), slice(c0, c1)),
                   (slice(r0, r1), slice(c0, c0 + dc)), (slice(r0, r1), slice(c1 - dc, c1))):
