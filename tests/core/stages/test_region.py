@@ -220,3 +220,15 @@ def test_sampling_many_points_beyond_the_remap_limit():
     assert values.shape == (50000,)
     np.testing.assert_allclose(values, points[:, 1] + 1000.0 * points[:, 0], rtol=1e-4)
     assert np.isnan(_sample(image, np.array([[500.0, 5.0]], np.float32)))[0]
+
+
+def test_screen_evidence_on_a_side_shorter_than_the_averaging_run(rng):
+    """A candidate with a side of a few pixels (seen on a held-out corpus frame): no crash."""
+    from napari_dslrxr.core.stages.region import RegionParams
+    from napari_dslrxr.core.stages.screen import screen_evidence
+
+    small = rng.normal(10.0, 1.0, (60, 80)).astype(np.float32)
+    small[20:40, 30:37] += 200.0
+    corners = np.array([[30.0, 20.0], [36.0, 20.0], [36.0, 39.0], [30.0, 39.0]])  # 6 px wide
+    evidence = screen_evidence(small, np.ones_like(small), corners, RegionParams())
+    assert evidence["border_coverage"] > 0.7 and evidence["accepted"]

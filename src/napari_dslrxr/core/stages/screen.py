@@ -175,8 +175,9 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
         # the step averaged over 9 px along the border and 5 px across on each side: its noise is
         # sigma sqrt(2 / 45) for pixel noise sigma
         step = np.where(valid, inside - outside, 0.0)
-        step = np.convolve(step, np.ones(_BORDER_RUN_PX) / _BORDER_RUN_PX, mode="same")
-        step_sigma = np.maximum(sigma, 1e-12) * np.sqrt(2.0 / (_BORDER_RUN_PX * len(inward_offsets)))
+        run = min(_BORDER_RUN_PX, len(step))  # a side shorter than the run: one average
+        step = np.convolve(step, np.ones(run) / run, mode="same")
+        step_sigma = np.maximum(sigma, 1e-12) * np.sqrt(2.0 / (run * len(inward_offsets)))
         ratios.append(np.where(valid & to_surround, step / np.where(np.isfinite(step_sigma), step_sigma, np.inf), 0.0))
     evidence: dict = {"open_sides": [edge for _, edge in open_sides], "open_side_index": [i for i, _ in open_sides]}
     if not ratios or total_points < 16:
