@@ -69,7 +69,7 @@ def test_whole_field_anatomy_is_not_blanked(have_data, tmp_path, seed):
     else:  # the leg's collimator shadows are the only dark surround: a field, with its evidence
         assert region["evidence"]["border_coverage"] >= 0.7
     assert results["display"]["clipped_fraction"] <= 0.01
-    assert "flat field skipped" not in done.stderr
+    assert "no flat frame given" not in done.stderr
 
 
 def test_screen_in_room_is_found_with_its_evidence(have_data, tmp_path):
@@ -93,8 +93,8 @@ def test_missing_flat_and_psf_are_announced(have_data, tmp_path):
     done = _dslrxr("run", str(frame), "-c", str(config), "-o", str(tmp_path / "out"))
     assert done.returncode == 0, done.stderr
     lines = [line for line in done.stderr.splitlines() if line.startswith("dslrxr: warning:")]
-    assert any("flat field skipped" in line for line in lines)
-    assert any("deblurring skipped: no PSF" in line for line in lines)
+    assert any("no flat frame given" in line for line in lines)
+    assert any("no PSF model given: not deblurred" in line for line in lines)
     assert any("polarity assumed" in line for line in lines)
     _, results = _outputs(tmp_path / "out", frame.stem)
     assert len(results["warnings"]) == len(lines)  # the same text, for the widget

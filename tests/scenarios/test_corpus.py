@@ -85,7 +85,7 @@ def test_flat_pattern_metric_catches_a_missing_flat():
         scenario = make_scenario(seed)
         result = process_frame(scenario.raw, black_level=scenario.black_level, keep_intermediates=True)
         left.append(evaluate(scenario, result)["flat_left"])
-        assert any(w.startswith("flat field skipped") for w in result.results["warnings"])
+        assert any(w.startswith("no flat frame given") for w in result.results["warnings"])
     assert np.median(left) > 0.7, left
 
 

@@ -281,7 +281,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     results["flatfield"] = {"n_flats": reference.n_flats, "reference_pulses_cleaned": reference.cleaned_pulses,
                             "applied": reference.denominator is not None}
     if reference.denominator is None:
-        warnings.append("flat field skipped: no flat frame given (uneven illumination stays in the image)")
+        warnings.append("no flat frame given: flat field not corrected (uneven illumination stays in the image)")
     if keep_intermediates:
         inter["flatfield"] = corrected
     timings["flatfield"] = clock() - t0
@@ -303,7 +303,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
         corrected = _deblur_stage(corrected, region.mask, np.asarray(psf_kernel, np.float32), params, results)
     else:
         results["deblur"] = "skipped (no PSF model given)"
-        warnings.append("deblurring skipped: no PSF model given")
+        warnings.append("no PSF model given: not deblurred")
     timings["deblur"] = clock() - t0
     yield 4, total
 
