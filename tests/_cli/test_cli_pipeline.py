@@ -84,7 +84,7 @@ def test_each_worker_prepares_the_flat_reference_once(tmp_path, inputs, monkeypa
         job = {"input": str(inputs[shot]), "out_dir": str(tmp_path / "w"), "params": params_to_dict(PipelineParams()),
                "flats": [str(inputs["flat"])], "darks": [str(inputs["dark"])], "psf": None, "sod": None,
                "sdd": None, "patient": None}
-        name, ok, message, _ = cli_pipeline._process_one_in_worker(job)
+        name, ok, message, *_ = cli_pipeline._process_one_in_worker(job)
         assert ok, message
     assert reads == [[str(inputs["flat"])], [str(inputs["dark"])]]  # once, for the first file
     assert len(cli_pipeline._worker_references) == 1

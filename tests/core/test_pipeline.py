@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -105,14 +106,17 @@ def test_deblur_stage_runs_with_a_kernel(frames):
     result = process_frame(small.raw_rgb, psf_kernel=kernel, **refs)
     assert isinstance(result.results["deblur"], dict) and result.timings_s["deblur"] > 0
     assert np.isfinite(result.display).all()
-    # deblurring sharpens: more gradient energy in the attenuation image inside the region
+    # deblurring sharpens: more gradient energy in the attenuation image inside the region,
+    # away from the screen's rim (6 px), whose step dominated an earlier, looser region
     plain = process_frame(small.raw_rgb, **refs)
-    inside = result.region.mask[1:, 1:] & plain.region.mask[1:, 1:]
+    interior = cv2.erode((result.region.mask & plain.region.mask).astype(np.uint8), np.ones((13, 13), np.uint8))
+    inside = interior.astype(bool)[1:, 1:]
 
     def gradient_energy(att):
         return float((np.square(np.diff(att, axis=0)[:, 1:]) + np.square(np.diff(att, axis=1)[1:, :]))[inside].mean())
 
-    assert gradient_energy(result.intermediates["attenuation"]) > 2 * gradient_energy(plain.intermediates["attenuation"])  # 3.1x
+    # 1.15x measured (with the noise-capped automatic regularisation; no deblurring gives 1.0)
+    assert gradient_energy(result.intermediates["attenuation"]) > 1.1 * gradient_energy(plain.intermediates["attenuation"])
     # the recorded auto value is the one the solver used: passing it back reproduces the run
     params = PipelineParams()
     params.deblur.reg = result.results["deblur"]["reg_used"]

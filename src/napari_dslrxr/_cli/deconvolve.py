@@ -9,6 +9,7 @@ sidecar recording the method and the numeric regularisation actually used.
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Optional
@@ -105,7 +106,10 @@ def register(app: typer.Typer) -> None:
         image = read_image(input_path).data
         t_read = time.perf_counter() - t0
         t0 = time.perf_counter()
-        reg_used = dc.estimate_regularisation(image, kern, method) if reg_value == "auto" else float(reg_value)
+        auto = dc.choose_regularisation(image, kern, method) if reg_value == "auto" else None
+        reg_used = auto.reg if auto is not None else float(reg_value)
+        for warning in auto.warnings if auto is not None else ():
+            print(f"dslrxr: warning: {input_path}: automatic regularisation unreliable: {warning}", file=sys.stderr)
         t_auto = time.perf_counter() - t0
         t0 = time.perf_counter()
         result = dc.deconvolve(image, kern, method=method, reg=reg_used)
@@ -118,6 +122,7 @@ def register(app: typer.Typer) -> None:
         write_sidecar(output, stage="deconvolve", parameters=parameters, inputs=inputs,
                       timings_s={"read": t_read, "auto_reg": t_auto, "deconvolve": t_deconv},
                       results={"reg_used": reg_used, "reg_was_auto": reg_value == "auto",
+                               **({"auto": auto.as_dict()} if auto is not None else {}),
                                "kernel_shape": list(kern.shape), "output_dtype": "float32"})
         typer.echo(f"{output}: {method} deconvolution, reg {reg_used:.4g}"
                    f"{' (auto)' if reg_value == 'auto' else ''}, kernel {kern.shape[0]}x{kern.shape[1]}")

@@ -12,8 +12,22 @@ import typer
 from ..core.errors import DslrxrError, ParameterError
 
 
-def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, bool, str, float]:
-    """Worker: run one input; returns (input, ok, message, seconds). Picklable for processes.
+def _run_warnings(written: list) -> list[str]:
+    """The warnings a run recorded in its sidecar (stages skipped or guessed)."""
+    import json
+
+    from ..core.io.provenance import sidecar_path
+
+    for path in written:
+        try:
+            return list(json.loads(sidecar_path(path).read_text(encoding="utf-8"))["results"].get("warnings", []))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    return []
+
+
+def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, bool, str, float, list[str]]:
+    """Worker: run one input; returns (input, ok, message, seconds, warnings). Picklable for processes.
 
     ``reference_cache`` (sequential runs) keeps the prepared flat reference between files.
     """
@@ -28,11 +42,12 @@ def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, b
                            source_to_object_mm=job["sod"], source_to_detector_mm=job["sdd"],
                            patient=job["patient"], reference_cache=reference_cache,
                            warn=lambda line: print(f"dslrxr: {job['input']}: {line}", file=sys.stderr))
-        return job["input"], True, f"wrote {len(written)} file(s)", time.perf_counter() - t0
+        return (job["input"], True, f"wrote {len(written)} file(s)", time.perf_counter() - t0,
+                _run_warnings(written))
     except DslrxrError as exc:
-        return job["input"], False, str(exc), time.perf_counter() - t0
+        return job["input"], False, str(exc), time.perf_counter() - t0, []
     except MemoryError:
-        return job["input"], False, "out of memory", time.perf_counter() - t0
+        return job["input"], False, "out of memory", time.perf_counter() - t0, []
 
 
 #: Flat references prepared in this worker process (``--jobs > 1``): each worker reads and prepares
@@ -45,7 +60,7 @@ def _init_worker() -> None:
     _worker_references = {}
 
 
-def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float]:
+def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
     return _process_one(job, _worker_references)
 
 
@@ -150,9 +165,11 @@ def register(app: typer.Typer) -> None:
         failed = 0
         total = len(todo)
 
-        def report(i: int, outcome: tuple[str, bool, str, float]) -> None:
+        def report(i: int, outcome: tuple[str, bool, str, float, list[str]]) -> None:
             nonlocal failed
-            name, ok, message, seconds = outcome
+            name, ok, message, seconds, warnings = outcome
+            for warning in warnings:  # a stage skipped or guessed: one line each
+                print(f"dslrxr: warning: {name}: {warning}", file=sys.stderr)
             if ok:
                 print(f"[{i}/{total}] {name}: {message} ({seconds:.1f} s)", file=sys.stderr)
             else:

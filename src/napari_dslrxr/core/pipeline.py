@@ -27,11 +27,13 @@ import cv2
 import numpy as np
 
 from .stages.contrast import enhance_contrast
-from .stages.dynamic_range import reduce_dynamic_range, sigmoid_lut
+from .stages.dynamic_range import CLIPPED_HIGH, CLIPPED_LOW, fit_to_display, reduce_dynamic_range, \
+    sigmoid_lut
 from .errors import InputError, OutputError, ParameterError
 from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
 from .params import PipelineParams, params_to_dict, params_to_toml, validate_params
-from .stages.region import Region, detect_collimation, detect_screen, polygon_mask, rectify, voi_window
+from .stages.region import Region, detect_collimation, detect_screen, direct_exposure_level, polygon_mask, \
+    rectify, voi_window
 
 #: Stage names, in the order their progress steps are yielded.
 PIPELINE_STAGES = ("impulse", "flatfield", "region", "deblur", "grey_log", "dynamic_range", "contrast", "display")
@@ -52,7 +54,9 @@ class PipelineResult:
     timings_s : dict
         Wall time of each stage, seconds.
     results : dict
-        Numbers worth keeping (pulse rate, gain, flat-field statistics, stage notes).
+        Numbers worth keeping (pulse rate, gain, flat-field statistics, stage notes);
+        ``results["warnings"]`` lists, one line each, the stages that were skipped or had to
+        guess (no flat, no PSF, no screen found, ...): the CLI prints them, the widgets show them.
     intermediates : dict
         Named intermediate images when ``keep_intermediates=True`` (``"impulse"``,
         ``"flatfield"``, ``"attenuation"``, ``"dynamic_range"``, ``"contrast"``).
@@ -94,7 +98,7 @@ def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> 
 
 def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, params: PipelineParams,
                   results: dict) -> np.ndarray:
-    from .stages.deconvolution import check_reg, deconvolve, estimate_regularisation
+    from .stages.deconvolution import check_reg, choose_regularisation, deconvolve
 
     # scale each channel to about [0, 1] over the region (the solver's expected range)
     chans = colour if colour.ndim == 3 else colour[..., None]
@@ -106,12 +110,18 @@ def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, para
     normalised = chans / scale
     solver_input = normalised if colour.ndim == 3 else normalised[..., 0]
     reg_used = check_reg(params.deblur.reg)
+    auto = None
     if reg_used == "auto":  # estimate here (once) so the sidecar records the number the solver used
-        reg_used = estimate_regularisation(solver_input, kernel, params.deblur.method)
+        auto = choose_regularisation(solver_input, kernel, params.deblur.method)
+        reg_used = auto.reg
+        results["warnings"].extend(f"deblurring: automatic regularisation unreliable: {text}"
+                                   for text in auto.warnings)
     out = deconvolve(solver_input, kernel, method=params.deblur.method, reg=reg_used)
     out = (out if out.ndim == 3 else out[..., None]) * scale
     results["deblur"] = {"kernel_shape": list(kernel.shape), "method": params.deblur.method,
                          "reg": params.deblur.reg, "reg_used": reg_used}
+    if auto is not None:
+        results["deblur"]["auto"] = auto.as_dict()
     return out if colour.ndim == 3 else out[..., 0]
 
 
@@ -123,6 +133,82 @@ def _scale_to_voi_window(x: np.ndarray, sample: np.ndarray, params: PipelinePara
     x -= np.float32(lo)
     x *= np.float32(1.0 / (hi - lo))
     return lo, hi
+
+
+def _may_hold_blades(display_oriented: np.ndarray, mask: np.ndarray, factor: float) -> bool:
+    """Cheap test before the blade search: does a side strip of the region attenuate like a blade?
+
+    A blade's band lies along a side of the region (the screen or the frame): the outer 5 %
+    strip of the region's bounding box on that side is then at least as dense as 95 % of the
+    region's middle (the box without its outer 20 %). When no side is, the search (and its
+    imports) is skipped.
+    """
+    sh, sw = display_oriented.shape
+    small_mask = cv2.resize(mask.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST).astype(bool) \
+        if factor > 1 else mask
+    rows, cols = np.nonzero(small_mask.any(axis=1))[0], np.nonzero(small_mask.any(axis=0))[0]
+    if rows.size < 16 or cols.size < 16:
+        return False
+    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    dr, dc = max(2, (r1 - r0) // 20), max(2, (c1 - c0) // 20)
+    # the density to beat: 95 % of the region's middle (bands may cover much of its outer part)
+    middle = (slice(r0 + 4 * dr, r1 - 4 * dr), slice(c0 + 4 * dc, c1 - 4 * dc))
+    values = display_oriented[middle][small_mask[middle]]
+    if values.size < 16:
+        return True
+    top = float(np.percentile(values[:: max(1, values.size // 200_000)], 95))
+    for strip in ((slice(r0, r0 + dr), slice(c0, c1)), (slice(r1 - dr, r1), slice(c0, c1)),
+                  (slice(r0, r1), slice(c0, c0 + dc)), (slice(r0, r1), slice(c1 - dc, c1))):
+        inside = small_mask[strip]
+        if np.count_nonzero(inside) >= 32 and float(np.median(display_oriented[strip][inside])) >= top:
+            return True
+    return False
+
+
+def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region, params: PipelineParams,
+                      results: dict) -> tuple[np.ndarray, Region]:
+    """Collimator blades on a camera frame: leave the unexposed bands out of the region.
+
+    Blades shade straight bands of the screen that got (almost) no X-rays; in the
+    bone-white attenuation image they are bright and uniform, as on a CR plate, so
+    :func:`~napari_dslrxr.core.region.detect_collimation` finds them. The inset scales with
+    the frame (``collimation_inset_px`` is for a 2000 px radiograph).
+    """
+    h, w = attenuation.shape
+    # a copy of at most 2000 px a side is plenty for blades (and costs little on 24 Mpx frames)
+    factor = max(1.0, max(h, w) / 2000.0)
+    small = cv2.resize(attenuation, (max(16, round(w / factor)), max(16, round(h / factor))),
+                       interpolation=cv2.INTER_AREA) if factor > 1 else attenuation
+    display_oriented = small if params.output.polarity == "bone_white" else -small
+    results["collimation"] = {"detected": False}
+    if not _may_hold_blades(display_oriented, mask, factor):
+        return mask, region
+    inset = params.region.collimation_inset_px * min(1.0, max(h, w) / 2000.0) / factor
+    found = detect_collimation(display_oriented, inset_px=inset)
+    if not found.detected:
+        return mask, region
+    polygon = (found.polygon_xy + 0.5) * np.array([w / small.shape[1], h / small.shape[0]]) - 0.5
+    field = Region(polygon_mask((h, w), polygon), polygon) if factor > 1 else found
+    combined = mask & field.mask
+    band = mask & ~field.mask
+    step = max(1, int(np.sqrt(attenuation.size / 1_000_000)))
+    inside, beyond = combined[::step, ::step], band[::step, ::step]
+    if not inside.any() or not beyond.any():
+        return mask, region
+    # Behind a blade the screen gets scatter only: the band must attenuate more than almost all
+    # of the field, and get less than e^-1 (37 %) of the field's median light (a uniform stretch
+    # of soft tissue at the frame's side, or the vignetting of a frame without a flat, does not)
+    sub = attenuation[::step, ::step] if params.output.polarity == "bone_white" else -attenuation[::step, ::step]
+    band_level = float(np.median(sub[beyond]))
+    field_mid, field_top = (float(v) for v in np.percentile(sub[inside], [50, 95]))
+    if band_level < field_top or abs(band_level - field_mid) < 1.0:
+        results["collimation"]["rejected"] = ("the band beyond the edges is not darker than 95 % of the field "
+                                              "or gets more than 37 % of its median light")
+        return mask, region
+    results["collimation"] = {"detected": True, "polygon_xy": field.polygon_xy.round(2).tolist()}
+    region = Region(combined, region.polygon_xy, region.detected, {**region.evidence, "collimation": True})
+    results["region"]["area_fraction"] = float(combined.mean())
+    return combined, region
 
 
 def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: Sequence[np.ndarray] = (),
@@ -168,6 +254,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     total = len(PIPELINE_STAGES)
     timings: dict[str, float] = {}
     results: dict = {}
+    warnings: list[str] = results.setdefault("warnings", [])  # stages skipped or guessed, one line each
     inter: dict = {}
     clock = time.perf_counter
 
@@ -193,6 +280,8 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     del cleaned
     results["flatfield"] = {"n_flats": reference.n_flats, "reference_pulses_cleaned": reference.cleaned_pulses,
                             "applied": reference.denominator is not None}
+    if reference.denominator is None:
+        warnings.append("no flat frame given: flat field not corrected (uneven illumination stays in the image)")
     if keep_intermediates:
         inter["flatfield"] = corrected
     timings["flatfield"] = clock() - t0
@@ -200,9 +289,11 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
 
     # (iii) screen region (values of interest come after the grey/log conversion)
     t0 = clock()
-    region = detect_screen(corrected, params.region)
+    region = detect_screen(corrected, params.region, illumination=reference.denominator)
     results["region"] = {"polygon_xy": region.polygon_xy.round(2).tolist(), "detected": region.detected,
-                         "area_fraction": float(region.mask.mean())}
+                         "area_fraction": float(region.mask.mean()), "evidence": region.evidence}
+    if not region.detected and "reason" in region.evidence:
+        warnings.append(f"region: no screen found ({region.evidence['reason']}); the whole frame is used")
     timings["region"] = clock() - t0
     yield 3, total
 
@@ -212,6 +303,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
         corrected = _deblur_stage(corrected, region.mask, np.asarray(psf_kernel, np.float32), params, results)
     else:
         results["deblur"] = "skipped (no PSF model given)"
+        warnings.append("no PSF model given: not deblurred")
     timings["deblur"] = clock() - t0
     yield 4, total
 
@@ -231,6 +323,9 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     attenuation = np.log(grey, out=grey)  # in place: grey is not needed any more
     if params.output.polarity == "bone_white":
         np.negative(attenuation, out=attenuation)
+    if params.region.detect_collimation:
+        mask, region = _collimated_field(attenuation, mask, region, params, results)
+        sub_mask = mask[::step, ::step]
     sub_att = attenuation[::step, ::step]
     lo, hi = _scale_to_voi_window(attenuation, sub_att[sub_mask] if sub_mask.any() else sub_att, params)
     results["voi_window"] = [lo, hi]
@@ -241,7 +336,8 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
 
     # (v) dynamic-range / latitude reduction, (vi) multiscale contrast, display curve: the
     # same steps as apply_display_stages, one at a time for the progress and the timings
-    display_steps = _display_steps(attenuation, mask, params)
+    display_report: dict = {}
+    display_steps = _display_steps(attenuation, mask, params, report=display_report)
     del attenuation  # the steps' generator holds it until stage (v) is done
     for step, stage in ((6, "dynamic_range"), (7, "contrast")):
         t0 = clock()
@@ -254,26 +350,57 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
 
     t0 = clock()
     display = next(display_steps)
+    results["display"] = display_report
     timings["display"] = clock() - t0
     yield 8, total
     return PipelineResult(display=display, region=region, voi_window=(lo, hi), timings_s=timings,
                           results=results, intermediates=inter, params=params)
 
 
+def _anatomy_grid(image: np.ndarray, mask: np.ndarray | None, params: PipelineParams) -> tuple[int, np.ndarray]:
+    """Regular subsample step and its anatomy mask: inside ``mask``, outside direct exposure.
+
+    ``image`` is the value-of-interest scaled attenuation; the direct-exposure level is the
+    one the value-of-interest window leaves out (:func:`direct_exposure_level`).
+    """
+    step = max(1, int(np.sqrt(image.size / 1_000_000)))
+    sub = image[::step, ::step]
+    anatomy = np.ones(sub.shape, bool) if mask is None else mask[::step, ::step].copy()
+    if not anatomy.any():
+        anatomy[...] = True
+    if params.region.exclude_direct_exposure:
+        # the conservative level: thin tissue beside the direct exposure must not burn out
+        low = direct_exposure_level(sub[anatomy], at_foot=True)
+        if low is not None:
+            anatomy &= sub >= low
+    return step, anatomy
+
+
 def _display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelineParams,
-                   fill_outside: bool = True) -> Generator[np.ndarray, None, None]:
+                   fill_outside: bool = True, report: dict | None = None) -> Generator[np.ndarray, None, None]:
     """Yield the image after dynamic-range reduction, after contrast, and the display image.
 
     The body of :func:`apply_display_stages`, one stage per ``next`` so that
     :func:`run_pipeline` can report progress and time each stage. The generator releases
     ``image`` once the first stage is done and each stage's result once the next is done.
+    Before the display curve the anatomy is kept off the display's ends
+    (:func:`~napari_dslrxr.core.dynamic_range.fit_to_display`); ``report`` (when given) gets
+    the adjustment (``display_fit``) and the share of the anatomy still clipped
+    (``clipped_fraction``).
     """
+    step, anatomy = _anatomy_grid(image, mask, params)
     x = reduce_dynamic_range(image, mask, params.dynamic_range)
     del image
     yield x
     x = enhance_contrast(x, params.contrast, mask)
     yield x
+    fit = fit_to_display(x, x[::step, ::step][anatomy], params.dynamic_range)
     x = sigmoid_lut(x, params.dynamic_range)
+    if report is not None:
+        shown = x[::step, ::step][anatomy]
+        report["display_fit"] = fit
+        report["clipped_fraction"] = round(float(np.mean((shown <= CLIPPED_LOW) | (shown >= CLIPPED_HIGH))), 5) \
+            if shown.size else 0.0
     if fill_outside and mask is not None and not mask.all():
         x[~mask] = 0.0 if params.output.outside_region == "black" else 1.0
     yield x

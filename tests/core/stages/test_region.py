@@ -192,6 +192,8 @@ def test_enhance_radiograph_uses_the_collimated_field(rng):
     h, w = 300, 400
     image, truth = _collimated_radiograph(rng, (h, w), (70, None, 60, None), 2.0)
     params = PipelineParams()
+    # the field's effect on the window alone: no compression onto the display curve
+    params.dynamic_range.max_clipped_percent = 100.0
     off = dataclasses.replace(params, region=dataclasses.replace(params.region, detect_collimation=False))
     white = dataclasses.replace(params, output=dataclasses.replace(params.output, outside_region="white"))
     with_field, without, white_out = (enhance_radiograph(image, p) for p in (params, off, white))
@@ -206,3 +208,27 @@ def test_enhance_radiograph_uses_the_collimated_field(rng):
     assert bone.any() and direct.any()
     spread = [out[bone].mean() - out[direct].mean() for out in (with_field, without)]
     assert spread[0] > spread[1] + 0.05, spread
+
+
+def test_sampling_many_points_beyond_the_remap_limit():
+    """More than 32767 samples (a 24 Mpx frame's blade profiles) in one call: no OpenCV error."""
+    from napari_dslrxr.core.stages.region import _sample
+
+    image = np.add.outer(np.arange(100.0), 1000.0 * np.arange(120.0)).astype(np.float32)  # row + 1000 col
+    points = np.random.default_rng(0).uniform(0, 99, (50000, 2)).astype(np.float32)
+    values = _sample(image, points)
+    assert values.shape == (50000,)
+    np.testing.assert_allclose(values, points[:, 1] + 1000.0 * points[:, 0], rtol=1e-4)
+    assert np.isnan(_sample(image, np.array([[500.0, 5.0]], np.float32)))[0]
+
+
+def test_screen_evidence_on_a_side_shorter_than_the_averaging_run(rng):
+    """A candidate with a side of a few pixels (seen on a held-out corpus frame): no crash."""
+    from napari_dslrxr.core.stages.region import RegionParams
+    from napari_dslrxr.core.stages.screen import screen_evidence
+
+    small = rng.normal(10.0, 1.0, (60, 80)).astype(np.float32)
+    small[20:40, 30:37] += 200.0
+    corners = np.array([[30.0, 20.0], [36.0, 20.0], [36.0, 39.0], [30.0, 39.0]])  # 6 px wide
+    evidence = screen_evidence(small, np.ones_like(small), corners, RegionParams())
+    assert evidence["border_coverage"] > 0.7 and evidence["accepted"]

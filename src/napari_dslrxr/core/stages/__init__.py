@@ -2,8 +2,9 @@
 
 * :mod:`.impulse` - impulse-noise (zinger) removal in HSV counts or on the CFA planes;
 * :mod:`.flatfield` - dark subtraction and gain (flat-field) correction from open-beam frames;
-* :mod:`.region` - the screen in the photograph, its rectification, the collimated field and the
-  VOI window;
+* :mod:`.region` - the region's parameters and type, its rectification and the VOI window;
+  :mod:`.screen` - the screen in the photograph, found on evidence; :mod:`.collimation` - the
+  collimated field;
 * :mod:`.deconvolution` - deblurring with a known kernel (adaptive, Wiener, regularised least squares);
 * :mod:`.dynamic_range` - latitude reduction and the sigmoid display curve;
 * :mod:`.contrast` - multiscale (Laplacian-pyramid) contrast enhancement.
@@ -24,12 +25,16 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "flatfield": ("FlatFieldParams", "FlatReference", "remove_bright_pulses", "combine_frames",
         "prepare_flat_reference", "apply_flat_field", "flat_field_correct"),
     "region": ("RegionParams", "Region", "order_corners", "polygon_mask", "shrink_polygon",
-        "detect_screen", "voi_window", "rectify", "detect_collimation"),
+        "direct_exposure_level", "voi_window", "rectify"),
+    "screen": ("screen_evidence", "detect_screen"),
+    "collimation": ("detect_collimation",),
     "deconvolution": ("METHODS", "DeconvolutionParams", "check_method", "check_reg", "validate_kernel",
         "robust_range", "estimate_noise_sigma", "gradient_spectrum", "fo_derivative_spectrum",
-        "kernel_otf", "pad_and_taper", "estimate_regularisation", "deconvolve_steps", "deconvolve"),
+        "kernel_otf", "pad_and_taper", "deconvolve_steps", "deconvolve"),
+    "regularisation": ("AUTO_MAX_NOISE_GAIN", "RegularisationChoice", "estimate_regularisation",
+        "model_regularisation", "choose_regularisation", "flat_noise_gain"),
     "dynamic_range": ("DynamicRangeParams", "masked_lowpass", "edge_aware_lowpass", "reduce_dynamic_range",
-        "sigmoid_lut"),
+        "sigmoid_lut", "lut_input_range", "fit_to_display"),
     "contrast": ("ContrastParams", "auto_levels", "laplacian_pyramid", "reconstruct_pyramid",
         "robust_sigma", "map_coefficients", "enhance_contrast"),
 }

@@ -30,7 +30,8 @@ precision of the image gradient* in those units: every method regularises with a
 ``reg * sigma_n**2`` (a Gaussian gradient prior of variance ``1/reg`` has exactly this MAP
 weight), so doubling ``reg`` doubles the smoothing in every method and on every image, and the
 same value means the same trade-off whatever the exposure. Useful values span about 1 to 1e5
-(show it on a log slider). ``reg="auto"`` chooses it from the data (:func:`estimate_regularisation`):
+(show it on a log slider). ``reg="auto"`` chooses it from the data (module :mod:`.regularisation`,
+:func:`~napari_dslrxr.core.stages.regularisation.estimate_regularisation`):
 a Whittle maximum-likelihood fit of the observed power spectrum to ``c |K|^2 / |D|^2 + s2``
 gives the gradient variance ``c`` of the sharp image and the average noise variance ``s2``;
 the MSE-optimal Tikhonov weight under that model is ``s2 / c``, scaled by one fixed
@@ -79,10 +80,6 @@ _FO_LAMBDA2_PER_NOISE = 0.5
 #: Smoothing + sparse-target + solve passes (the paper does one; more passes re-guide from the
 #: previous result: no measurable gain on our cases, twice the time).
 _FO_PASSES = 1
-
-#: Per-method multipliers of the model-optimal weight in the automatic choice
-#: (rls, adaptive: of s2 / c; wiener: of the model-MSE-optimal constant NSR).
-_AUTO_KAPPA = {"wiener": 0.4, "rls": 1.3, "adaptive": 2.0}
 
 #: Bounds for reg (beyond them the solution is either the inverse filter or a flat image).
 REG_MIN, REG_MAX = 1e-3, 1e9
@@ -230,6 +227,11 @@ def estimate_noise_sigma(image: np.ndarray, block_px: int = 32) -> float:
     float
         Noise standard deviation in the image's units.
     """
+    return float(np.sqrt(np.mean(noise_sigma_tiles(image, block_px) ** 2)))
+
+
+def noise_sigma_tiles(image: np.ndarray, block_px: int = 32) -> np.ndarray:
+    """Robust noise sigma of each ``block_px`` tile (see :func:`estimate_noise_sigma`), float64, 1-D."""
     arr = np.asarray(image, dtype=np.float32)
     h, w = (arr.shape[0] // 2) * 2, (arr.shape[1] // 2) * 2
     d = (arr[0:h:2, 0:w:2] - arr[0:h:2, 1:w:2]) - (arr[1:h:2, 0:w:2] - arr[1:h:2, 1:w:2])
@@ -237,13 +239,12 @@ def estimate_noise_sigma(image: np.ndarray, block_px: int = 32) -> float:
     b = max(block_px // 2, 4)
     bh, bw = d.shape[0] // b, d.shape[1] // b
     if bh == 0 or bw == 0:
-        return float(np.median(d)) * 0.5 / 0.6744897501960817
+        return np.array([float(np.median(d)) * 0.5 / 0.6744897501960817])
     tiles = d[:bh * b, :bw * b].reshape(bh, b, bw, b)
     if bh * bw > 4096:  # large image: every other tile row and column is plenty
         tiles = tiles[::2, :, ::2, :]
     tiles = tiles.transpose(0, 2, 1, 3).reshape(-1, b * b)
-    sigma_tiles = np.median(tiles, axis=1).astype(np.float64) * (0.5 / 0.6744897501960817)
-    return float(np.sqrt(np.mean(sigma_tiles ** 2)))
+    return np.median(tiles, axis=1).astype(np.float64) * (0.5 / 0.6744897501960817)
 
 
 # --------------------------------------------------------------------------- spectra
@@ -350,137 +351,8 @@ def pad_and_taper(channel: np.ndarray, shape: tuple[int, int], fill: float) -> t
     return out, (top, left)
 
 
-# --------------------------------------------------------------------------- automatic choice
-
-
-def _whittle_fit(channel_n: np.ndarray, kernel: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """Fit the periodogram of a normalised channel to ``c |K|^2 / |D|^2 + s2``.
-
-    Whittle (Gaussian spectral) likelihood on a Hann-windowed centre crop of at most 1024 px a
-    side (larger when the kernel needs it); DC and the lowest frequencies (the window's
-    leakage) are left out.
-
-    Returns
-    -------
-    c : float
-        Variance of the sharp image's forward-difference gradient (normalised units).
-    s2 : float
-        Average white-noise variance (normalised units).
-    k2, d2 : ndarray
-        ``|K|^2`` and ``|D|^2`` on the crop's rfft2 grid (for model-based choices).
-    """
-    from scipy.optimize import minimize
-
-    h, w = channel_n.shape
-    side_y = min(h, max(1024, 4 * kernel.shape[0]))
-    side_x = min(w, max(1024, 4 * kernel.shape[1]))
-    r0, c0 = (h - side_y) // 2, (w - side_x) // 2
-    crop = channel_n[r0:r0 + side_y, c0:c0 + side_x].astype(np.float64)
-    crop = crop - crop.mean()
-    win = np.hanning(side_y)[:, None] * np.hanning(side_x)[None, :]
-    shape = (side_y, side_x)
-    periodogram = np.abs(np.fft.rfft2(crop * win)) ** 2 / float(np.sum(win * win))
-    kc = kernel
-    if kc.shape[0] > side_y or kc.shape[1] > side_x:  # kernel wider than the image: central part
-        ry = min(kc.shape[0] // 2, (side_y - 1) // 2)
-        rx = min(kc.shape[1] // 2, (side_x - 1) // 2)
-        cy, cx = kc.shape[0] // 2, kc.shape[1] // 2
-        kc = kc[cy - ry:cy + ry + 1, cx - rx:cx + rx + 1]
-        kc = (kc / kc.sum()).astype(np.float32)
-    otf = kernel_otf(kc, shape).astype(np.complex128)
-    k2 = otf.real ** 2 + otf.imag ** 2
-    d2 = gradient_spectrum(shape).astype(np.float64)
-    fy = np.abs(np.fft.fftfreq(side_y))[:, None]
-    fx = np.abs(np.fft.rfftfreq(side_x))[None, :]
-    use = np.sqrt(fy * fy + fx * fx) > 4.0 / min(side_y, side_x)
-    p = periodogram[use]
-    shape_term = (k2 / np.maximum(d2, 1e-12))[use]
-
-    def nll(log_params: np.ndarray) -> float:
-        c, s2 = np.exp(log_params)
-        model = c * shape_term + s2
-        return float(np.mean(np.log(model) + p / model))
-
-    s2_0 = max(estimate_noise_sigma(channel_n) ** 2, 1e-12)
-    c_0 = max(float(np.mean(np.diff(crop, axis=1) ** 2)), 1e-12)
-    res = minimize(nll, np.log([c_0, s2_0]), method="Nelder-Mead",
-                   options={"xatol": 1e-3, "fatol": 1e-9, "maxiter": 400})
-    c, s2 = np.exp(res.x)
-    return float(c), float(s2), k2, d2
-
-
-def _wiener_mse_optimal_nsr(c: float, s2: float, k2: np.ndarray, d2: np.ndarray) -> float:
-    """Constant noise-to-signal ratio minimising the model MSE for signal spectrum ``c / |D|^2``.
-
-    ``MSE(lam) = sum_w (lam^2 S_x + |K|^2 s2) / (|K|^2 + lam)^2``, ``S_x = c / |D|^2`` (DC,
-    which the solver keeps, excluded).
-    """
-    from scipy.optimize import minimize_scalar
-
-    valid = d2 > 1e-9
-    sx = c / d2[valid]
-    kk = k2[valid]
-
-    def mse(log_lam: float) -> float:
-        lam = math.exp(log_lam)
-        return float(np.sum((lam * lam * sx + kk * s2) / (kk + lam) ** 2))
-
-    res = minimize_scalar(mse, bounds=(math.log(1e-12), math.log(1e3)), method="bounded")
-    return float(math.exp(res.x))
-
-
 def _luminance(arr: np.ndarray) -> np.ndarray:
     return arr if arr.ndim == 2 else arr.astype(np.float32).mean(axis=2)
-
-
-def estimate_regularisation(image: np.ndarray, kernel: np.ndarray, method: str = "adaptive") -> float:
-    """Choose the regularisation knob from the data alone (no ground truth, no tuning per image).
-
-    A Whittle maximum-likelihood fit of the observed power spectrum of the normalised image to
-    ``c |K|^2 / |D|^2 + s2`` estimates the gradient variance ``c`` of the sharp image and the
-    average noise variance ``s2`` (signal-dependent noise included). Under that model the
-    MSE-optimal weights are:
-
-    * ``"rls"``: ``lam = s2 / c`` (the Wiener-optimal Tikhonov weight), times ``kappa = 1.3``;
-    * ``"adaptive"``: ``w4 = kappa s2 / c`` with ``kappa = 2`` (the sparse prior's derivative
-      targets carry the edges, so it can afford a stronger pull);
-    * ``"wiener"``: the constant noise-to-signal ratio minimising the model's predicted MSE,
-      times ``kappa = 0.4`` (a constant ratio cannot follow the 1/f^2 spectrum; on radiographs
-      the model optimum over-smoothed by about 2.5x).
-
-    The kappas are fixed constants calibrated once on synthetic phantoms and one radiograph
-    (never per image). The returned knob is ``lam / sigma_n^2`` (see the module docstring).
-
-    Parameters
-    ----------
-    image : ndarray (H, W) or (H, W, 3)
-        Blurred linear image, any real dtype (colour: fitted per channel, geometric mean).
-    kernel : ndarray
-        Blur kernel (odd sides, non-negative).
-    method : str
-        ``"adaptive"``, ``"wiener"`` or ``"rls"``.
-
-    Returns
-    -------
-    float
-        The value of ``reg`` to pass to :func:`deconvolve`.
-    """
-    check_method(method)
-    arr = _validate_image(image)
-    k = validate_kernel(kernel)
-    _, scale = robust_range(_luminance(arr).astype(np.float32, copy=False))
-    log_lams = []
-    for ch in _channels(arr):  # colour: per channel (the noise is per channel), geometric mean
-        normalised = ch.astype(np.float32) * np.float32(1.0 / scale)
-        c, s2, k2, d2 = _whittle_fit(normalised, k)
-        c = max(c, 1e-30)
-        if method == "wiener":
-            lam = _AUTO_KAPPA[method] * _wiener_mse_optimal_nsr(c, s2, k2, d2)
-        else:
-            lam = _AUTO_KAPPA[method] * s2 / c
-        log_lams.append(math.log(max(lam, 1e-30)))
-    sigma_n = _channel_noise(arr, scale)
-    return float(np.clip(math.exp(float(np.mean(log_lams))) / sigma_n ** 2, REG_MIN, REG_MAX))
 
 
 def _channels(arr: np.ndarray) -> list[np.ndarray]:
@@ -642,6 +514,8 @@ def deconvolve_steps(image: np.ndarray, kernel: np.ndarray, *, method: str = "ad
     grey = _luminance(arr).astype(np.float32, copy=False)
     _, scale = robust_range(grey)
     if reg == "auto":
+        from .regularisation import estimate_regularisation
+
         reg = estimate_regularisation(arr, k, method)
     sigma_n = _channel_noise(arr, scale)
     lam = float(reg) * sigma_n ** 2
@@ -720,3 +594,16 @@ def deconvolve(image: np.ndarray, kernel: np.ndarray, *, method: str = "adaptive
             return stop.value
         if progress is not None:
             progress(done, total)
+
+
+#: The automatic choice lives in :mod:`.regularisation`; its names stay importable from here.
+_ELSEWHERE = ("AUTO_MAX_NOISE_GAIN", "RegularisationChoice", "estimate_regularisation", "model_regularisation",
+              "choose_regularisation", "flat_noise_gain")
+
+
+def __getattr__(name: str):
+    if name in _ELSEWHERE:  # lazy: the regularisation module imports this one
+        from . import regularisation
+
+        return getattr(regularisation, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

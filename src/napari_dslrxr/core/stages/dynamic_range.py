@@ -59,6 +59,11 @@ class DynamicRangeParams:
     edge_step : float
         Steps larger than this (value-of-interest units) are kept out of the low-pass so they
         cause no halo (edge-aware low-pass); 0 = plain blur (halos at strong edges).
+    max_clipped_percent : float
+        Largest share (%) of the anatomy (inside the region, outside direct exposure) that
+        may land on the display's black or white end: when the processed values spread beyond
+        the curve's range they are compressed (never expanded) onto it, see
+        :func:`fit_to_display` (0 to 100; 100 = never adjust).
     """
 
     enabled: bool = field(default=True, metadata={"help": "compress large-area (low-frequency) variation"})
@@ -77,6 +82,10 @@ class DynamicRangeParams:
     edge_step: float = field(default=0.2, metadata={
         "help": "steps larger than this stay out of the low-pass (no halo at strong edges); 0 = plain blur",
         "unit": "VOI units", "min": 0.0, "max": 1.0})
+    max_clipped_percent: float = field(default=0.5, metadata={
+        "help": "largest share of the anatomy shown as pure black or white; the processed values are "
+                "compressed onto the display curve when more would clip (100 = never adjust)",
+        "unit": "%", "min": 0.0, "max": 100.0})
 
     def __post_init__(self) -> None:
         validate_fields(self, "dynamic_range")
@@ -236,3 +245,66 @@ def sigmoid_lut(image: np.ndarray, params: DynamicRangeParams | None = None) -> 
     out += 0.02
     np.clip(out, 0.0, 1.0, out=out)
     return out
+
+
+#: Display values that count as clipped: the 8-bit preview's 0 and 255.
+CLIPPED_LOW, CLIPPED_HIGH = 0.5 / 255.0, 254.5 / 255.0
+
+
+def lut_input_range(params: DynamicRangeParams | None = None) -> tuple[float, float]:
+    """Processed values that :func:`sigmoid_lut` maps to the unclipped ends (0.5/255, 254.5/255)."""
+    params = params or DynamicRangeParams()
+    c, w = float(params.lut_center), float(params.lut_width)
+    s0 = 1.0 / (1.0 + np.exp(-(0.0 - c) / w))
+    s1 = 1.0 / (1.0 + np.exp(-(1.0 - c) / w))
+    ends = []
+    for y in (CLIPPED_LOW, CLIPPED_HIGH):
+        s = s0 + (y - 0.02) * (s1 - s0) / 0.96
+        s = min(max(s, 1e-9), 1.0 - 1e-9)
+        ends.append(c + w * float(np.log(s / (1.0 - s))))
+    return ends[0], ends[1]
+
+
+def fit_to_display(image: np.ndarray, sample: np.ndarray, params: DynamicRangeParams | None = None) -> dict:
+    """Keep the anatomy off the display's ends: compress (never expand) processed values in place.
+
+    Contrast and detail gains push values of the anatomy beyond the value-of-interest range,
+    and the display curve then burns them out to pure black or white. With ``q =
+    max_clipped_percent``, the ``q/2`` and ``100 - q/2`` percentiles of ``sample`` (the
+    processed anatomy values) are brought inside :func:`lut_input_range`: by a shift when
+    their span fits, else by an affine compression onto it. Values already inside are left
+    alone (gain 1, shift 0), so images that do not clip keep their look.
+
+    Parameters
+    ----------
+    image : ndarray, float32
+        Processed values in value-of-interest units; modified in place.
+    sample : ndarray
+        Processed anatomy values (a subsample of ``image``).
+    params : DynamicRangeParams, optional
+
+    Returns
+    -------
+    dict
+        ``gain`` and ``offset`` applied (``image <- gain * image + offset``).
+    """
+    params = params or DynamicRangeParams()
+    q = float(params.max_clipped_percent)
+    values = np.asarray(sample, np.float32).ravel()
+    if q >= 100.0 or values.size < 16:
+        return {"gain": 1.0, "offset": 0.0}
+    u0, u1 = lut_input_range(params)
+    p_lo, p_hi = (float(v) for v in np.percentile(values, [0.5 * q, 100.0 - 0.5 * q]))
+    gain, offset = 1.0, 0.0
+    if p_hi - p_lo > u1 - u0:
+        gain = (u1 - u0) / (p_hi - p_lo)
+        offset = u0 - gain * p_lo
+    elif p_lo < u0:
+        offset = u0 - p_lo
+    elif p_hi > u1:
+        offset = u1 - p_hi
+    if gain != 1.0:
+        image *= np.float32(gain)
+    if offset != 0.0:
+        image += np.float32(offset)
+    return {"gain": round(gain, 4), "offset": round(offset, 4)}

@@ -1,11 +1,10 @@
 """Object region and value-of-interest scaling (stage iii).
 
-The camera sees the exposed scintillator screen as a bright, possibly keystoned
-quadrilateral in a dark frame. :func:`detect_screen` finds it on a downsampled copy (log
-scale, Otsu threshold, largest component with holes filled, convex hull, four corners from a
-polygon approximation or the hull's extreme points), then refines each side by a robust line
-fit through the full-contour points between the corners and intersects neighbouring sides.
-The quadrilateral is shrunk slightly inward so the screen's soft rim is excluded.
+The region is where the exposed screen (or, for display radiographs, the collimated field)
+is: :func:`detect_screen` (module :mod:`.screen`) finds a screen quadrilateral on strong
+evidence only, :func:`detect_collimation` (module :mod:`.collimation`) finds collimator
+blades. This module holds their shared parameters and region type, the polygon helpers and
+the value-of-interest window.
 
 :func:`voi_window` picks the values of interest inside the region: percentiles of the
 histogram after excluding the direct-exposure mode (unattenuated beam), the standard CR/DR
@@ -21,7 +20,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..errors import InputError, ParameterError
+from ..errors import InputError
 from ..param_fields import validate_fields
 
 
@@ -46,6 +45,17 @@ class RegionParams:
         Leave the direct-exposure (unattenuated) mode out of the value-of-interest histogram.
     polygon_xy : list of [x, y]
         User override of the screen corners (4 points, pixels, TL, TR, BR, BL); empty = detect.
+    min_border_contrast_sigma : float
+        A point of the screen's border counts as evidence when the screen just inside is
+        brighter than the surround just outside by this many noise sigmas of the measurement
+        (the step averaged over 9 px along the border and 5 px across each side; 3 to 100).
+    min_border_coverage : float
+        Share of the border's length (sides along the frame's edge excluded) that must show
+        that contrast before a screen is accepted (0.3 to 1).
+    max_bright_surround : float
+        Largest share of the surround (away from the border) that may be as bright as the
+        screen's edge; a brighter surround means the candidate is anatomy, not a screen
+        (0 to 0.5).
     detect_collimation : bool
         For display radiographs (CR/DR, :func:`napari_dslrxr.core.pipeline.enhance_radiograph`
         and the contrast widget): find collimator blades with :func:`detect_collimation` and
@@ -71,6 +81,15 @@ class RegionParams:
     polygon_xy: list = field(default_factory=list, metadata={
         "help": "user override of the screen corners [[x, y], ...] (4 points, px, TL TR BR BL); [] = detect",
         "unit": "px", "points": 4})
+    min_border_contrast_sigma: float = field(default=5.0, metadata={
+        "help": "border contrast (screen inside minus surround) that counts as evidence, in pixel-noise sigmas",
+        "unit": "sigma", "min": 3.0, "max": 100.0})
+    min_border_coverage: float = field(default=0.7, metadata={
+        "help": "share of the screen border's length that must show that contrast (else the whole frame is used)",
+        "unit": "fraction", "min": 0.3, "max": 1.0})
+    max_bright_surround: float = field(default=0.03, metadata={
+        "help": "largest share of the surround as bright as the screen's edge (else the whole frame is used)",
+        "unit": "fraction", "min": 0.0, "max": 0.5})
     detect_collimation: bool = field(default=True, metadata={
         "help": "display radiographs only: find collimator blades and use the exposed field as the region"})
     collimation_inset_px: float = field(default=10.0, metadata={
@@ -93,11 +112,15 @@ class Region:
         Corners (x, y) in pixels, order top-left, top-right, bottom-right, bottom-left.
     detected : bool
         False when the polygon came from the user or is the whole frame.
+    evidence : dict
+        What the detection found and how strongly (see :func:`screen_evidence`), or why
+        nothing was accepted (``"reason"``); empty for user polygons.
     """
 
     mask: np.ndarray
     polygon_xy: np.ndarray
     detected: bool = True
+    evidence: dict = field(default_factory=dict)
 
 
 def order_corners(points_xy: np.ndarray) -> np.ndarray:
@@ -136,123 +159,63 @@ def _line_intersection(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
     return np.array([x1 + t * vx1, y1 + t * vy1])
 
 
-def _four_corners(hull: np.ndarray) -> np.ndarray:
-    """Four corners of a convex hull: polygon approximation, else extreme points."""
-    perimeter = cv2.arcLength(hull, True)
-    for eps in (0.01, 0.02, 0.03, 0.05):
-        approx = cv2.approxPolyDP(hull, eps * perimeter, True)
-        if len(approx) == 4:
-            return approx.reshape(4, 2).astype(np.float64)
-    pts = hull.reshape(-1, 2).astype(np.float64)
-    s, d = pts.sum(axis=1), pts[:, 0] - pts[:, 1]
-    return np.array([pts[np.argmin(s)], pts[np.argmax(d)], pts[np.argmax(s)], pts[np.argmin(d)]])
+def _sample(image: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a float32 image at (..., 2) (x, y) points; NaN outside the frame."""
+    pts = np.asarray(points_xy, np.float32)
+    flat = pts.reshape(-1, 2)
+    n = len(flat)
+    # cv2.remap takes maps below 32767 a side: lay the points out as rows of 4096
+    cols = max(1, min(n, 4096))
+    rows = -(-n // cols)
+    grid = np.full((rows * cols, 2), -1.0e6, np.float32)  # padding samples fall outside: NaN
+    grid[:n] = flat
+    grid = grid.reshape(rows, cols, 2)
+    values = cv2.remap(image, grid[..., 0], grid[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                       borderValue=np.nan)
+    return values.reshape(-1)[:n].reshape(pts.shape[:-1])
 
 
-def _refine_corners(contour: np.ndarray, corners: np.ndarray) -> np.ndarray:
-    """Fit a line to the contour points of each side (away from corners); intersect neighbours."""
-    pts = contour.reshape(-1, 2).astype(np.float64)
-    corners = order_corners(corners)
-    lines = []
-    for i in range(4):
-        a, b = corners[i], corners[(i + 1) % 4]
-        ab = b - a
-        length = np.hypot(*ab)
-        if length < 4:
-            return corners
-        t = ((pts - a) @ ab) / length**2
-        dist = np.abs((pts - a) @ np.array([-ab[1], ab[0]])) / length
-        sel = (t > 0.1) & (t < 0.9) & (dist < max(2.0, 0.02 * length))
-        if np.count_nonzero(sel) < 5:
-            return corners
-        lines.append(cv2.fitLine(pts[sel].astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel())
-    refined = []
-    for i in range(4):
-        p = _line_intersection(lines[(i - 1) % 4], lines[i])
-        if p is None or np.hypot(*(p - corners[i])) > 0.1 * np.ptp(corners, axis=0).max():
-            return corners
-        refined.append(p)
-    return np.array(refined)
+def direct_exposure_level(values: np.ndarray, *, at_foot: bool = False) -> float | None:
+    """Attenuation below which pixels are direct exposure (the unattenuated beam), or None.
 
-
-def detect_screen(image: np.ndarray, params: RegionParams | None = None) -> Region:
-    """Find the exposed screen quadrilateral in a (flat-fielded) frame.
+    The direct-exposure mode is the lowest-attenuation peak of the histogram (128 bins over
+    the 0.1-99.9 % range, smoothed over 5) when a valley below half its height separates it
+    from the object, the object rises well above the valley again, and at least 20 % of the
+    values lie above the valley. Returns the valley's lower bin edge, or with ``at_foot``
+    the lower edge of the peak's foot: the first bin after the peak within 3 % of the peak's
+    height above the valley (a conservative level: a plateau of thin tissue after the foot
+    counts as object).
 
     Parameters
     ----------
-    image : ndarray, (H, W) or (H, W, 3)
-        Linear intensity (counts); colour is summed over channels.
-    params : RegionParams, optional
-
-    Returns
-    -------
-    Region
-        Mask and corners at full resolution; the whole frame when detection is disabled
-        or nothing bright is found.
-
-    Raises
-    ------
-    ParameterError
-        A user polygon that is not 4 (x, y) points.
+    values : ndarray, float
+        Finite attenuation-domain values (high = more attenuation), any shape.
     """
-    params = params or RegionParams()
-    arr = np.asarray(image)
-    h, w = arr.shape[:2]
-    whole = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
-    if params.polygon_xy:
-        poly = np.asarray(params.polygon_xy, np.float64)
-        if poly.shape != (4, 2):
-            raise ParameterError(f"region.polygon_xy: expected 4 [x, y] points, got shape {poly.shape}")
-        poly = order_corners(poly)
-        return Region(polygon_mask((h, w), poly), poly, detected=False)
-    if not params.enabled:
-        return Region(np.ones((h, w), bool), whole, detected=False)
-    factor = max(1.0, max(h, w) / float(params.analysis_size_px))
-    source = arr if arr.dtype == np.float32 else arr.astype(np.float32)
-    # downsample first (area average), then sum the colour channels: no full-size copy
-    small = cv2.resize(source, (max(8, round(w / factor)), max(8, round(h / factor))), interpolation=cv2.INTER_AREA) \
-        if factor > 1 else source.copy()
-    if small.ndim == 3:
-        small = small.sum(axis=2)
-    small = cv2.GaussianBlur(small, (0, 0), 1.0)
-    top = float(np.percentile(small, 99.5))
-    if not top > 0:
-        return Region(np.ones((h, w), bool), whole, detected=False)
-    # log scale: attenuated object (dark inside the screen) stays above the unexposed frame
-    logged = np.log(np.maximum(small, 0) + 0.005 * top)
-    lo, hi = float(logged.min()), float(logged.max())
-    if hi - lo < 1e-6:
-        return Region(np.ones((h, w), bool), whole, detected=False)
-    scaled = np.round((logged - lo) / (hi - lo) * 255).astype(np.uint8)
-    _, binary = cv2.threshold(scaled, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
-    binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)
-    binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, kernel)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
-    if n <= 1:
-        return Region(np.ones((h, w), bool), whole, detected=False)
-    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    component = (labels == largest).astype(np.uint8)
-    # The log-scale Otsu split sits low on the blurred screen edge; re-threshold at half way
-    # between the unexposed level and the screen rim (the 50 % point of the edge profile).
-    ring = component.astype(bool) & ~cv2.erode(component, np.ones((9, 9), np.uint8)).astype(bool)
-    outside = ~cv2.dilate(component, np.ones((9, 9), np.uint8)).astype(bool)
-    if np.count_nonzero(ring) > 16 and np.count_nonzero(outside) > 16:
-        rim_level = float(np.percentile(small[ring], 75))
-        edge_level = 0.5 * (rim_level + float(np.median(small[outside])))
-        near = cv2.dilate(component, np.ones((9, 9), np.uint8))
-        refined = ((small > edge_level) & near.astype(bool)).astype(np.uint8)
-        n2, labels2, stats2, _ = cv2.connectedComponentsWithStats(refined, connectivity=8)
-        if n2 > 1:
-            component = (labels2 == 1 + int(np.argmax(stats2[1:, cv2.CC_STAT_AREA]))).astype(np.uint8)
-    contours, _ = cv2.findContours(component, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    contour = max(contours, key=cv2.contourArea)
-    hull = cv2.convexHull(contour)
-    corners = _refine_corners(contour, _four_corners(hull))
-    # pixel-centre coordinates of the small image -> full resolution
-    corners = (corners + 0.5) * np.array([w / small.shape[1], h / small.shape[0]]) - 0.5
-    corners = order_corners(corners)
-    poly = shrink_polygon(corners, params.shrink_fraction)
-    return Region(polygon_mask((h, w), poly), poly, detected=True)
+    v = np.asarray(values, np.float32).ravel()
+    if v.size < 16:
+        return None
+    a, b = np.percentile(v, [0.1, 99.9])
+    if not b > a:
+        return None
+    hist, edges = np.histogram(v, bins=128, range=(float(a), float(b)))
+    smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
+    low_part = smooth[:48]  # direct exposure sits at the low-attenuation end
+    peak = int(np.argmax(low_part))
+    beyond = smooth[peak:]
+    if peak < 40 and beyond.size > 8:
+        valley = peak + int(np.argmin(beyond[: max(8, beyond.size // 2)]))
+        peak_height = smooth[peak]
+        # a real direct-exposure mode: a peak with a clear valley above it and object beyond
+        if (smooth[valley] < 0.5 * peak_height and smooth[valley:].max() > 2 * smooth[valley] + 1
+                and np.count_nonzero(v >= edges[valley]) > 0.2 * v.size):
+            if not at_foot:
+                return float(edges[valley])
+            # Thin soft tissue (the skin line of a limb) spreads as a low plateau from the
+            # peak's foot to the object, and the plateau's deepest bin may lie far into it
+            floor = smooth[valley] + 0.03 * (peak_height - smooth[valley])
+            foot = peak + int(np.argmax(smooth[peak:valley + 1] <= floor))
+            return float(edges[foot])
+    return None
 
 
 def voi_window(values: np.ndarray, *, low_percentile: float = 0.5, high_percentile: float = 99.5,
@@ -267,7 +230,7 @@ def voi_window(values: np.ndarray, *, low_percentile: float = 0.5, high_percenti
         Percentiles of the retained values mapped to 0 and 1.
     exclude_direct_exposure : bool
         Drop the lowest-attenuation mode (the unattenuated beam) when it is a distinct peak
-        separated from the object by a histogram valley.
+        separated from the object by a histogram valley (:func:`direct_exposure_level`).
 
     Returns
     -------
@@ -285,20 +248,10 @@ def voi_window(values: np.ndarray, *, low_percentile: float = 0.5, high_percenti
         raise InputError("region", "no valid pixels inside the region for the value-of-interest window")
     if v.size > 2_000_000:
         v = v[:: v.size // 1_000_000]
-    a, b = np.percentile(v, [0.1, 99.9])
-    if exclude_direct_exposure and b > a:
-        hist, edges = np.histogram(v, bins=128, range=(float(a), float(b)))
-        smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
-        low_part = smooth[:48]  # direct exposure sits at the low-attenuation end
-        peak = int(np.argmax(low_part))
-        beyond = smooth[peak:]
-        if peak < 40 and beyond.size > 8:
-            valley = peak + int(np.argmin(beyond[: max(8, beyond.size // 2)]))
-            peak_height = smooth[peak]
-            # a real direct-exposure mode: a peak with a clear valley above it and object beyond
-            if (smooth[valley] < 0.5 * peak_height and smooth[valley:].max() > 2 * smooth[valley] + 1
-                    and np.count_nonzero(v >= edges[valley]) > 0.2 * v.size):
-                v = v[v >= edges[valley]]
+    if exclude_direct_exposure:
+        level = direct_exposure_level(v)
+        if level is not None:
+            v = v[v >= level]
     lo, hi = (float(x) for x in np.percentile(v, [low_percentile, high_percentile]))
     if not hi > lo:
         hi = lo + 1e-6
@@ -335,232 +288,15 @@ def rectify(image: np.ndarray, polygon_xy: np.ndarray, *, size: tuple[int, int] 
     return cv2.warpPerspective(arr, transform, (ow, oh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-#: Sides of the frame a collimator blade can cover: the Hough angle range's centre (radians,
-#: skimage convention x cos(theta) + y sin(theta) = rho with x = column, y = row) and the sign of
-#: the outward normal (towards the blade, away from the exposed field).
-_BLADE_SIDES = {"left": (0.0, -1.0), "right": (0.0, 1.0), "top": (np.pi / 2, -1.0), "bottom": (np.pi / 2, 1.0)}
+
+#: Names defined in the screen and collimation modules, importable from here as before.
+_ELSEWHERE = {"detect_screen": "screen", "screen_evidence": "screen", "detect_collimation": "collimation"}
 
 
-def _line_samples(shape: tuple[int, int], theta: float, rho: float, step_px: float = 1.0) -> np.ndarray:
-    """(x, y) points every ``step_px`` along the line x cos(theta) + y sin(theta) = rho inside a frame."""
-    h, w = shape
-    c, s = np.cos(theta), np.sin(theta)
-    if abs(c) >= abs(s):  # near-vertical: parametrise by row
-        y = np.arange(0.0, h - 1.0 + 1e-9, step_px * abs(c))
-        x = (rho - y * s) / c
-    else:
-        x = np.arange(0.0, w - 1.0 + 1e-9, step_px * abs(s))
-        y = (rho - x * c) / s
-    keep = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-    return np.column_stack([x[keep], y[keep]])
+def __getattr__(name: str):
+    # lazy, so that either module may be imported first (they import this one)
+    if name in _ELSEWHERE:
+        import importlib
 
-
-def _sample(image: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
-    """Bilinear samples of a float32 image at (..., 2) (x, y) points; NaN outside the frame."""
-    pts = np.asarray(points_xy, np.float32)
-    flat = pts.reshape(-1, 1, 2)
-    values = cv2.remap(image, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                       borderValue=np.nan)
-    return values.reshape(pts.shape[:-1])
-
-
-def _blade_score(small: np.ndarray, grid_xy: tuple[np.ndarray, np.ndarray], theta: float, rho: float,
-                 outward: float, min_step: float) -> float:
-    """Evidence (0 = none) that a collimator blade lies beyond a line on the normalised small image.
-
-    A blade shades a band between the line and the frame border: the band is brighter than
-    the field just inside the line along most of the line's length, and nearly uniform
-    compared with the field (no anatomy under the blade).
-    """
-    h, w = small.shape
-    normal = outward * np.array([np.cos(theta), np.sin(theta)])
-    points = _line_samples((h, w), theta, rho)
-    if len(points) < 0.2 * (h if abs(np.cos(theta)) > abs(np.sin(theta)) else w):
-        return 0.0
-    offsets = np.arange(2.0, 7.0)
-    # samples beyond the frame are NaN: a profile counts only when all of it is inside
-    out = _sample(small, points[:, None, :] + offsets[None, :, None] * normal).mean(axis=1)
-    inside = _sample(small, points[:, None, :] - offsets[None, :, None] * normal).mean(axis=1)
-    step = out - inside
-    step = step[np.isfinite(step)]
-    if step.size < 8:
-        return 0.0
-    coverage = float(np.mean(step > min_step))
-    xx, yy = grid_xy
-    signed = outward * (xx * np.cos(theta) + yy * np.sin(theta) - rho)
-    band, field_px = small[signed > 3.0], small[signed < -3.0]
-    if band.size < 2 * len(points) or field_px.size < band.size // 4:
-        return 0.0
-    band_lo, band_mid, band_hi = np.percentile(band, [10, 50, 90])
-    field_lo, field_mid, field_hi = np.percentile(field_px, [10, 50, 90])
-    uniform = (band_hi - band_lo) < 0.5 * (field_hi - field_lo)
-    brighter = band_mid > field_mid + min_step
-    if coverage < 0.6 or not uniform or not brighter:
-        return 0.0
-    return coverage * float(np.median(step))
-
-
-def _refine_blade(image: np.ndarray, theta: float, rho: float, outward: float,
-                  half_width_px: float) -> tuple[float, float] | None:
-    """Move a coarse blade line onto the steepest outward step of the full-resolution image.
-
-    Profiles across the line, every few pixels along it; on each, the sub-pixel position of
-    the largest outside-minus-inside derivative; a robust (Huber) line through those points.
-    Returns ``(theta, rho)`` or None when too few profiles show the step.
-    """
-    h, w = image.shape
-    normal = outward * np.array([np.cos(theta), np.sin(theta)])
-    points = _line_samples((h, w), theta, rho, step_px=max(2.0, min(h, w) / 400.0))
-    offsets = np.arange(-half_width_px, half_width_px + 1.0)
-    profiles = _sample(image, points[:, None, :] + offsets[None, :, None] * normal)
-    valid = np.all(np.isfinite(profiles), axis=1)
-    if np.count_nonzero(valid) < 8:
-        return None
-    points = points[valid]
-    profiles = cv2.GaussianBlur(profiles[valid].astype(np.float32), (1, 5), 0)  # along the line
-    slope = np.diff(profiles, axis=1)  # rises towards the blade (outward)
-    best = np.argmax(slope, axis=1)
-    strength = slope[np.arange(len(best)), best]
-    keep = (strength > 0.25 * np.median(strength)) & (best > 0) & (best < slope.shape[1] - 1)
-    if np.count_nonzero(keep) < 8:
-        return None
-    i = np.arange(len(best))[keep]
-    b = best[keep]
-    left, mid, right = slope[i, b - 1], slope[i, b], slope[i, b + 1]
-    denominator = left - 2 * mid + right
-    shift = np.where(np.abs(denominator) > 1e-12, 0.5 * (left - right) / np.where(denominator == 0, 1, denominator), 0)
-    # slope index k lies between offsets k and k + 1
-    position = offsets[0] + b + 0.5 + np.clip(shift, -0.5, 0.5)
-    edge_xy = points[keep] + position[:, None] * normal
-    vx, vy, x0, y0 = cv2.fitLine(edge_xy.astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
-    new_theta = float(np.arctan2(vx, -vy))  # normal of the direction (vx, vy)
-    if np.cos(new_theta - theta) < 0:
-        new_theta -= np.pi * np.sign(new_theta - theta)
-    return new_theta, float(x0 * np.cos(new_theta) + y0 * np.sin(new_theta))
-
-
-def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_tilt_deg: float = 10.0,
-                       min_step: float = 0.08, inset_px: float = 0.0) -> Region:
-    """Find the exposed field of a collimated radiograph (display orientation, bright = unexposed).
-
-    Collimator blades leave straight-edged bands along the frame's sides where the plate got
-    (almost) no radiation: after MONOCHROME1 inversion they are bright and nearly uniform. On a
-    copy downsampled to ``analysis_size_px``, normalised to its 0.5-99.5 % range, each side's
-    candidate edges are the peaks of a straight-line Hough transform
-    (:func:`skimage.transform.hough_line`) of the Canny edges whose gradient points towards
-    that side, limited to ``max_tilt_deg`` from the side's axis. A candidate is a blade when
-    the band beyond it is brighter than the field just inside along at least 60 % of its
-    length (by ``min_step``), brighter than the field's median, and more uniform than the field
-    (10-90 % spread below half the field's). The best blade of each side is then moved onto
-    the steepest step of the full-resolution image (sub-pixel, robust line fit). The field is
-    the intersection of the half-planes inside the found blades; absent blades leave the
-    field open to the frame border.
-
-    Parameters
-    ----------
-    image : ndarray, (H, W) or (H, W, 3), any real dtype
-        Radiograph in display orientation (higher = brighter = less exposure); colour is
-        averaged.
-    analysis_size_px : int
-        Longest side (px) of the downsampled copy used for the search (64 to 4096).
-    max_tilt_deg : float
-        Largest blade tilt from the frame's axes searched (degrees, 0 to 30).
-    min_step : float
-        Smallest brightness step across a blade edge, as a fraction of the image's
-        0.5-99.5 % range.
-    inset_px : float
-        Move each found edge this many pixels into the field (>= 0): 0 keeps the edge at its
-        steepest point; a few pixels drop the blade's penumbra.
-
-    Returns
-    -------
-    Region
-        ``mask`` (bool, (H, W)) of the exposed field and ``polygon_xy`` (float64, (4, 2), x, y
-        in pixels, TL, TR, BR, BL; corners on an open side lie half a pixel outside the frame
-        and may lie further out when a blade is tilted). ``detected`` is False, with an
-        all-true mask and the frame's corners, when no blade is found.
-
-    Raises
-    ------
-    ParameterError
-        Out-of-range parameters.
-    InputError
-        Not a 2-D (or 2-D colour) image.
-    """
-    from skimage.feature import canny
-    from skimage.transform import hough_line, hough_line_peaks
-
-    if not 64 <= analysis_size_px <= 4096:
-        raise ParameterError(f"analysis_size_px: must be 64 to 4096, got {analysis_size_px}")
-    if not 0 <= max_tilt_deg <= 30:
-        raise ParameterError(f"max_tilt_deg: must be 0 to 30 degrees, got {max_tilt_deg}")
-    if not 0 < min_step < 1:
-        raise ParameterError(f"min_step: must be between 0 and 1, got {min_step}")
-    if not inset_px >= 0:
-        raise ParameterError(f"inset_px: must be >= 0, got {inset_px}")
-    arr = np.asarray(image)
-    if arr.ndim == 3:
-        arr = arr.mean(axis=2)
-    if arr.ndim != 2 or min(arr.shape) < 16:
-        raise InputError("image", f"expected a 2-D radiograph at least 16 px a side, got shape {np.shape(image)}")
-    h, w = arr.shape
-    whole = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
-    nothing = Region(np.ones((h, w), bool), whole, detected=False)
-    full = np.nan_to_num(arr.astype(np.float32, copy=False), nan=0.0, posinf=0.0, neginf=0.0)
-    lo, hi = (float(v) for v in np.percentile(full[::4, ::4], [0.5, 99.5]))
-    if not hi > lo:
-        return nothing
-    full = (full - np.float32(lo)) * np.float32(1.0 / (hi - lo))
-    factor = max(1.0, max(h, w) / float(analysis_size_px))
-    small = cv2.resize(full, (max(16, round(w / factor)), max(16, round(h / factor))),
-                       interpolation=cv2.INTER_AREA) if factor > 1 else full.copy()
-    sh, sw = small.shape
-    scale = np.array([w / sw, h / sh])
-    edges = canny(small, sigma=1.5, low_threshold=0.5 * min_step, high_threshold=min_step)
-    gy, gx = np.gradient(cv2.GaussianBlur(small, (0, 0), 1.5))
-    magnitude = np.hypot(gx, gy) + 1e-12
-    tilt = np.deg2rad(max_tilt_deg)
-    grid_xy = np.meshgrid(np.arange(sw), np.arange(sh))  # (x, y) pixel indices, once for all candidates
-    lines = {}
-    for side, (axis_theta, outward) in _BLADE_SIDES.items():
-        normal_gradient = (gx if axis_theta == 0 else gy) * outward  # rises towards the blade
-        side_edges = edges & (normal_gradient > 0.8 * magnitude)
-        if np.count_nonzero(side_edges) < 0.2 * min(sh, sw):
-            continue
-        thetas = axis_theta + np.linspace(-tilt, tilt, 2 * int(np.ceil(max_tilt_deg * 2)) + 1)
-        accumulator, angles, distances = hough_line(side_edges, theta=thetas)
-        length = sh if axis_theta == 0 else sw
-        _, peak_angles, peak_rhos = hough_line_peaks(accumulator, angles, distances, num_peaks=6,
-                                                     threshold=0.2 * length, min_distance=5)
-        best = (0.0, None)
-        for theta, rho in zip(peak_angles, peak_rhos):
-            score = _blade_score(small, grid_xy, float(theta), float(rho), outward, min_step)
-            if score > best[0]:
-                best = (score, (float(theta), float(rho)))
-        if best[1] is None:
-            continue
-        theta, rho = best[1]
-        # small-image pixel centres -> full resolution: p_full = (p_small + 0.5) * scale - 0.5
-        nx, ny = np.cos(theta) / scale[0], np.sin(theta) / scale[1]
-        norm = np.hypot(nx, ny)
-        full_theta = float(np.arctan2(ny, nx))
-        full_rho = float((rho + 0.5 * (np.cos(theta) + np.sin(theta))) / norm - 0.5 * (nx + ny) / norm)
-        refined = _refine_blade(full, full_theta, full_rho, outward, half_width_px=2.0 * factor + 4.0)
-        theta, rho = refined if refined is not None else (full_theta, full_rho)
-        lines[side] = (theta, rho - outward * inset_px)
-    if not lines:
-        return nothing
-    border = {"left": (0.0, -0.5), "right": (0.0, w - 0.5), "top": (np.pi / 2, -0.5), "bottom": (np.pi / 2, h - 0.5)}
-    as_direction = {}
-    for side in _BLADE_SIDES:
-        theta, rho = lines.get(side, border[side])
-        c, s = np.cos(theta), np.sin(theta)
-        as_direction[side] = np.array([-s, c, rho * c, rho * s])  # (vx, vy, x0, y0)
-    corners = []
-    for first, second in (("left", "top"), ("top", "right"), ("right", "bottom"), ("bottom", "left")):
-        point = _line_intersection(as_direction[first], as_direction[second])
-        if point is None:
-            return nothing
-        corners.append(point)
-    poly = np.array(corners)
-    return Region(polygon_mask((h, w), poly), poly, detected=True)
+        return getattr(importlib.import_module(f"{__package__}.{_ELSEWHERE[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

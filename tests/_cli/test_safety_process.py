@@ -1,0 +1,125 @@
+"""The cases of "safe on frames nobody on the team made", each through the ``dslrxr`` process.
+
+* a camera frame whose anatomy fills the whole field (real chest / leg anatomy, no surround):
+  nothing blanked, the reason recorded and printed;
+* a screen in a room: found, with its evidence score in the sidecar;
+* the display defaults: the anatomy's clipped fraction <= 1 % (sidecar and measured);
+* running without a flat or a PSF: one warning line each on stderr;
+* the automatic regularisation on the plugin's own edge sample: capped, and it says so.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scenarios.corpus import clipped_fraction, data_dir, make_scenario
+
+from napari_dslrxr.core.io import read_image, write_tiff
+
+pytestmark = pytest.mark.realdata
+
+
+def _dslrxr(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *args], capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.fixture(scope="module")
+def have_data():
+    if not (data_dir() / "cr_dicom").is_dir():
+        pytest.skip(f"real data folder {data_dir()} is absent (set DSLRXR_DATA)")
+
+
+def _write_scenario(folder: Path, seed: int):
+    scenario = make_scenario(seed)
+    frame = folder / f"frame{seed}.tif"
+    flat = folder / f"flat{seed}.tif"
+    write_tiff(frame, np.round(scenario.raw).astype(np.uint16))
+    write_tiff(flat, np.round(scenario.flat).astype(np.uint16))
+    config = folder / "params.toml"
+    config.write_text(f"[flatfield]\nblack_level_counts = {scenario.black_level}\n", encoding="utf-8")
+    return scenario, frame, flat, config
+
+
+def _outputs(out: Path, stem: str):
+    display = read_image(out / f"{stem}_dslrxr.tif").data.astype(np.float32) / 65535.0
+    sidecar = json.loads((out / f"{stem}_dslrxr.tif.json").read_text())
+    return display, sidecar["results"]
+
+
+@pytest.mark.parametrize("seed", [6, 10, 23])  # chest, chest, leg: the anatomy fills the frame
+def test_whole_field_anatomy_is_not_blanked(have_data, tmp_path, seed):
+    scenario, frame, flat, config = _write_scenario(tmp_path, seed)
+    assert scenario.info["layout"] == "whole_field"
+    done = _dslrxr("run", str(frame), "--flat", str(flat), "-c", str(config), "-o", str(tmp_path / "out"))
+    assert done.returncode == 0, done.stderr
+    display, results = _outputs(tmp_path / "out", frame.stem)
+    # before: 60-87 % of such anatomy blanked by a "screen" found inside it
+    blanked = float(np.mean(display[scenario.anatomy] == 0.0))
+    assert blanked < 0.01, blanked
+    assert clipped_fraction(display, scenario.anatomy) <= 0.01
+    region = results["region"]
+    if not region["detected"]:  # no screen: the reason is recorded and printed
+        assert region["evidence"]["reason"] and "region: no screen found" in done.stderr
+    else:  # the leg's collimator shadows are the only dark surround: a field, with its evidence
+        assert region["evidence"]["border_coverage"] >= 0.7
+    assert results["display"]["clipped_fraction"] <= 0.01
+    assert "no flat frame given" not in done.stderr
+
+
+def test_screen_in_room_is_found_with_its_evidence(have_data, tmp_path):
+    scenario, frame, flat, config = _write_scenario(tmp_path, 14)  # chest, screen in a dark room
+    assert scenario.info["layout"] == "screen_in_room"
+    done = _dslrxr("run", str(frame), "--flat", str(flat), "-c", str(config), "-o", str(tmp_path / "out"))
+    assert done.returncode == 0, done.stderr
+    display, results = _outputs(tmp_path / "out", frame.stem)
+    evidence = results["region"]["evidence"]
+    assert results["region"]["detected"] and evidence["accepted"]
+    assert evidence["border_coverage"] >= 0.9 and evidence["border_contrast_sigma"] > 20
+    assert evidence["bright_surround"] <= 0.03
+    room = ~scenario.screen
+    assert np.mean(display[room] == 0.0) > 0.95  # the room is shuttered
+    assert np.mean(display[scenario.anatomy] == 0.0) < 0.01
+    assert "region: no screen found" not in done.stderr
+
+
+def test_missing_flat_and_psf_are_announced(have_data, tmp_path):
+    scenario, frame, _, config = _write_scenario(tmp_path, 8)
+    done = _dslrxr("run", str(frame), "-c", str(config), "-o", str(tmp_path / "out"))
+    assert done.returncode == 0, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.startswith("dslrxr: warning:")]
+    assert any("no flat frame given" in line for line in lines)
+    assert any("no PSF model given: not deblurred" in line for line in lines)
+    _, results = _outputs(tmp_path / "out", frame.stem)
+    assert len(results["warnings"]) == len(lines)  # the same text, for the widget
+
+
+def test_automatic_regularisation_on_the_edge_sample_is_capped(tmp_path):
+    from napari_dslrxr._sample_data import EDGE_SOURCE_TO_DETECTOR_MM, EDGE_TRUTH, _edge_images
+    from napari_dslrxr.core.psf import PSFModel, save_psf
+
+    sod, image = _edge_images()[0]
+    write_tiff(tmp_path / "edge.tif", image)
+    save_psf(PSFModel(**EDGE_TRUTH), tmp_path / "psf.json")
+    done = _dslrxr("deconvolve", str(tmp_path / "edge.tif"), "--psf", str(tmp_path / "psf.json"),
+                   "--source-to-object-mm", str(sod), "--source-to-detector-mm", str(EDGE_SOURCE_TO_DETECTOR_MM),
+                   "-o", str(tmp_path / "sharp.tif"))
+    assert done.returncode == 0, done.stderr
+    assert "automatic regularisation unreliable" in done.stderr and "raised to" in done.stderr
+    auto = json.loads((tmp_path / "sharp.tif.json").read_text())["results"]["auto"]
+    assert auto["capped"] and not auto["reliable"] and auto["model_noise_gain"] > 10
+    out = read_image(tmp_path / "sharp.tif").data
+    rows, cols = slice(8, 120), slice(84, 108)  # flat, bright side of the vertical edge
+
+    def plane_removed_std(patch):
+        yy, xx = np.mgrid[0:patch.shape[0], 0:patch.shape[1]]
+        design = np.column_stack([yy.ravel(), xx.ravel(), np.ones(patch.size)])
+        coef, *_ = np.linalg.lstsq(design, patch.ravel().astype(np.float64), rcond=None)
+        return float((patch.ravel() - design @ coef).std())
+
+    assert plane_removed_std(out[rows, cols]) <= 2.0 * plane_removed_std(image[rows, cols])
