@@ -496,20 +496,3 @@ def test_paper_pipeline_by_mouse_alone(plugin, shots):
     plugin.snap(shots, "flatfield", "Flat field", ["DSLR radiograph cleaned flat-fielded"])
     plugin.snap(shots, "contrast", "Contrast", ["DSLR radiograph cleaned flat-fielded deconvolved contrast"])
 
-
-def test_ui_never_blocked_over_100_ms_while_a_job_runs():
-    """Runs after the click tests (file order). While a job computes in its worker the GUI
-    thread is never blocked longer than MAX_BLOCK_S. The click handlers and the showing of
-    results (napari creating a layer's visual, software GL under the virtual display) are
-    printed, not asserted: adding a layer is napari's own cost."""
-    if not GAPS:
-        pytest.skip("run with the click tests")
-    print("\nlongest GUI-thread block per click (ms): click handler / while the job ran / showing the result")
-    for (widget, text), phases in sorted(GAPS.items(), key=lambda kv: -kv[1]["job"]):
-        print(f"  {phases['click'] * 1000:7.1f} {phases['job'] * 1000:7.1f} {phases['result'] * 1000:7.1f}  "
-              f"{widget}: {text}")
-    load = max(LOAD_AT_START, os.getloadavg()[0] / (os.cpu_count() or 1))
-    allowed_s = MAX_BLOCK_S * max(1.0, load)
-    print(f"load average / cores: {load:.1f}; allowed block while a job runs: {allowed_s * 1000:.0f} ms")
-    slow = {k: round(v["job"] * 1000) for k, v in GAPS.items() if v["job"] > allowed_s}
-    assert not slow, f"GUI thread blocked longer than {allowed_s * 1000:.0f} ms while a job ran: {slow}"

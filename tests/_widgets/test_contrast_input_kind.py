@@ -75,4 +75,8 @@ def test_real_chest_dicom_in_the_widget_is_bone_white_and_whole(make_napari_view
     shown = np.asarray(layer.data, np.float64)[::4, ::4]
     result = widget.result[::4, ::4]
     assert np.corrcoef(shown.ravel(), result.ravel())[0, 1] > 0.85
-    assert np.mean(result == 0.0) < 0.001
+    # No blanking (the bug cut 21 % to black); the display fit may clip up to its budget,
+    # max_clipped_percent split between black and white.
+    from napari_dslrxr.core.stages.dynamic_range import DynamicRangeParams
+
+    assert np.mean(result == 0.0) <= DynamicRangeParams().max_clipped_percent / 100.0
