@@ -172,7 +172,7 @@ _IMPULSE_META = {
     "window_px": {"help": "median window of the first detection: 3 = the 8 neighbours, 5 = the 8 pixels two "
                           "steps away (finds patches up to 3x3 px)", "unit": "px", "choices": (3, 5)},
     "max_patch_px": {"help": "largest pulse patch side grown into", "unit": "px", "min": 1, "max": 8},
-    "bright_only": {"help": "pulses on photon-counting channels are bright only (direct X-ray hits)"},
+    "spots": {"help": "polarity of the pulses on grey, V and CFA channels: bright (direct X-ray hits), dark or both"},
     "posterior_threshold": {"help": "a pixel is a pulse when its posterior pulse probability exceeds this",
                             "unit": "probability", "min": 0.0, "max": 1.0},
     "min_saturation": {"help": "pixels with saturation below this are left out of hue filtering",

@@ -125,9 +125,16 @@ def test_bad_input_and_parameters():
                 {"min_saturation": 2.0}, {"passes_grey": 1.5}, {"em_samples": 10}):
         with pytest.raises(ParameterError):
             ImpulseParams(**bad)
-    with pytest.raises(ParameterError):
-        ImpulseParams.from_mapping({"passes_x": 1})
-    assert ImpulseParams.from_mapping({"passes_h": 2}).passes_h == 2
+    with pytest.raises(ParameterError, match="spots"):
+        ImpulseParams(spots="grey")
+    # The TOML section: unknown keys and bad polarities are one-line errors naming the key.
+    from napari_dslrxr.core.params import params_from_dict
+
+    with pytest.raises(ParameterError, match="passes_x"):
+        params_from_dict({"impulse": {"passes_x": 1}})
+    with pytest.raises(ParameterError, match="impulse.spots"):
+        params_from_dict({"impulse": {"spots": "both_ways"}})
+    assert params_from_dict({"impulse": {"passes_h": 2, "spots": "dark"}}).impulse.spots == "dark"
 
 
 # --------------------------------------------------------------------------- colour

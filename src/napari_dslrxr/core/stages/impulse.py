@@ -53,7 +53,7 @@ pixels. A 6000x4000 RGB frame takes about 2 s of CPU (see benchmarks/bench_impul
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -95,11 +95,37 @@ _REPLACEMENT_MIN_GOOD = (5, 8, 12, 12)
 #: factor 2 is rarely reached on a smooth background, always on edges and screen corners).
 _SEED_SPREAD_TOLERANCE = 3.0
 
+#: Texture guard. Around a seed, a pixel of the annulus between Chebyshev distances
+#: ``_TEXTURE_INNER_PX`` and ``_TEXTURE_OUTER_PX`` is "busy" when its own residual to the
+#: fast detection median is at least ``_BUSY_RELATIVE`` of the seed's. A pulse (at most
+#: 5x5 px, so never reaching the annulus from any of its pixels) leaves only the noise's
+#: tail busy; a track (1-2 px wide) adds the two places where it crosses the annulus. A line
+#: pattern, mesh or grid (periodic structure that continues beyond the window) makes a
+#: large part of it busy, with residuals of both signs. A seed whose annulus is busier
+#: than ``_TEXTURE_BUSY_FRACTION`` is texture, not a pulse. Relative to the seed, not to
+#: the noise model: on a frame filled with texture the fitted noise is inflated by it.
+#: Measured on line patterns and meshes (2.2-5.3 px period, 60 % modulation) against
+#: pulses of every shape (benchmarks/eval_impulse_independent.py): the 1st percentile of
+#: texture seeds is at 0.22, the 99th of pulse seeds at 0.14 (tracks 0.24).
+#: Weak pulses (4-6 sigma) and texture overlap in that relative measure; the annulus is
+#: then also compared with the noise model: more than ``_TEXTURE_NOISY_FRACTION`` of it
+#: beyond ``_BUSY_SIGMAS`` noise sigmas is texture too (noise alone: 0.3 %).
+_BUSY_RELATIVE = 0.4
+_TEXTURE_INNER_PX = 4
+_TEXTURE_OUTER_PX = 6
+_TEXTURE_BUSY_FRACTION = 0.2
+_BUSY_SIGMAS = 3.0
+_TEXTURE_NOISY_FRACTION = 0.35
+
 #: Percentage of the EM samples, the darkest, whose residual variance is the floor of the
 #: photon-counting variance model (the read-noise term; see ``_dark_end_variance``).
 _DARK_END_PERCENT = 1.0
 
 _FLOAT = np.float32
+
+#: Pulse polarities and the sign of the residual each accepts (0: either sign).
+SPOT_POLARITIES = ("bright", "dark", "both")
+_POLARITY_SIGN = {"bright": 1, "dark": -1, "both": 0}
 
 
 # --------------------------------------------------------------------------- parameters
@@ -123,9 +149,11 @@ class ImpulseParams:
     max_patch_px : int
         Largest pulse patch side (px) to grow into, 1 to 8; sets the number of growth rounds
         and the distance of the ring whose spread measures the background structure.
-    bright_only : bool
-        Pulses on photon-counting channels (grey, V, CFA) are bright only (direct X-ray hits
-        on the sensor). H and S pulses are always two-sided.
+    spots : str
+        Polarity of the pulses on photon-counting channels (grey, V, CFA): ``"bright"``
+        (direct X-ray hits on the sensor; the default), ``"dark"`` (e.g. an open-beam hit
+        turned dark by normalisation, dead clusters) or ``"both"``. H and S pulses are
+        always two-sided.
     min_contrast : float
         Photon-counting channels only: a pulse must also exceed the local median by this
         fraction of it (Weber contrast, 0 to 1; Frosio & Borghese 2004 visibility rule), so
@@ -155,7 +183,8 @@ class ImpulseParams:
     passes_grey: int = 1
     window_px: int = 5
     max_patch_px: int = 4
-    bright_only: bool = True
+    spots: str = field(default="bright", metadata={
+        "help": "polarity of the pulses on grey, V and CFA channels", "choices": SPOT_POLARITIES})
     min_contrast: float = field(default=0.07, metadata={
         "help": "photon-counting channels: a pulse must also exceed the local median by this "
                 "fraction of it (Weber contrast, 0 to 1)"})
@@ -177,22 +206,14 @@ class ImpulseParams:
         _check_int("max_patch_px", self.max_patch_px, 1, 8)
         _check_int("em_samples", self.em_samples, 1000, 100_000_000)
         _check_int("em_iterations", self.em_iterations, 1, 500)
-        if not isinstance(self.bright_only, (bool, np.bool_)):
-            raise ParameterError(f"impulse.bright_only: must be true or false, got {self.bright_only!r}")
+        if self.spots not in SPOT_POLARITIES:
+            raise ParameterError(f"impulse.spots: must be one of {', '.join(SPOT_POLARITIES)}, "
+                                 f"got {self.spots!r}")
         _check_float("posterior_threshold", self.posterior_threshold, 0.0, 1.0, open_ends=True)
         _check_float("min_contrast", self.min_contrast, 0.0, 1.0)
         _check_float("neighbour_prior", self.neighbour_prior, 0.0, 1.0, open_ends=True)
         _check_float("min_saturation", self.min_saturation, 0.0, 1.0)
         _check_float("min_value_fraction", self.min_value_fraction, 0.0, 1.0)
-
-    @classmethod
-    def from_mapping(cls, values: dict) -> "ImpulseParams":
-        """Build from a TOML ``[impulse]`` table; unknown keys raise :class:`ParameterError`."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ParameterError(f"impulse: unknown parameter(s) {', '.join(unknown)}")
-        return cls(**values)
 
 
 def _check_int(name: str, value, lo: int, hi: int) -> None:
@@ -443,7 +464,7 @@ class _NoiseModel:
     b: float
     pulse_rate: float
     pulse_density: float
-    bright_only: bool
+    polarity: int  # +1 bright pulses only, -1 dark only, 0 either sign
     var_floor: float
     min_contrast: float = 0.0
     #: Photon-counting channels: median level of the darkest fit samples (nan if unknown).
@@ -472,8 +493,10 @@ class _NoiseModel:
         const = self.log_odds_constant(posterior_threshold, self.pulse_rate if prior is None else prior)
         limit = s2 * (const - np.log(s2))
         pulse = (d * d > limit) & (limit > 0) | (limit <= 0)
-        if self.bright_only:
+        if self.polarity > 0:
             pulse &= d > 0
+        elif self.polarity < 0:
+            pulse &= d < 0
         else:
             pulse &= d != 0
         if self.min_contrast > 0:
@@ -481,10 +504,10 @@ class _NoiseModel:
         return pulse
 
 
-def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, bright_only: bool,
+def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, polarity: int,
                  value_range: float, iterations: int) -> _NoiseModel:
     """Fit a, b and P by EM on residuals ``d`` and medians ``m`` (1-D float64 subsample)."""
-    density = 1.0 / value_range if bright_only else 1.0 / (2.0 * value_range)
+    density = 1.0 / value_range if polarity else 1.0 / (2.0 * value_range)
     var_floor = max((1e-4 * value_range) ** 2, 1e-12)
     mad = 1.4826 * float(np.median(np.abs(d)))
     if photon_counting:
@@ -496,14 +519,14 @@ def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, bright_
     else:
         a, b = 0.0, max(mad * mad, var_floor)
         dark_level = float("nan")
-    model = _NoiseModel(a, b, 0.01, density, bright_only, var_floor)
+    model = _NoiseModel(a, b, 0.01, density, polarity, var_floor)
     d2 = d * d
     for _ in range(iterations):
         s2 = model.variance(m)
         log_gauss = -0.5 * d2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
         pulse_log = math.log(model.pulse_rate * density)
-        if bright_only:
-            pulse_log = np.where(d > 0, pulse_log, -np.inf)
+        if polarity:
+            pulse_log = np.where(d * polarity > 0, pulse_log, -np.inf)
         # responsibilities r = P u / (P u + (1 - P) N), via the log-odds for stability
         log_odds = pulse_log - (math.log(1.0 - model.pulse_rate) + log_gauss)
         resp = 0.5 * (1.0 + np.tanh(0.5 * np.clip(log_odds, -60, 60)))
@@ -524,7 +547,7 @@ def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, bright_
         else:
             a_new, b_new = 0.0, float(np.sum(weight * d2) / max(np.sum(weight), 1e-30))
         change = abs(a_new - model.a) / max(model.a, 1e-30) + abs(b_new - model.b) / max(abs(model.b), var_floor)
-        model = _NoiseModel(float(a_new), float(b_new), new_rate, density, bright_only, var_floor)
+        model = _NoiseModel(float(a_new), float(b_new), new_rate, density, polarity, var_floor)
         if change < 1e-4:
             break
     model.dark_level = dark_level
@@ -550,23 +573,65 @@ def _dark_end(d: np.ndarray, m: np.ndarray) -> tuple[float, float]:
     return float(np.median(m[dark])), (1.4826 * float(np.median(np.abs(d[dark])))) ** 2
 
 
-def _median_lookup(components: list[_Component], rows: np.ndarray, cols: np.ndarray, shape) -> np.ndarray:
-    """Fast detection median at full-image (rows, cols), clipped to the image."""
-    h, w = shape
-    rows = np.clip(rows, 0, h - 1)
-    cols = np.clip(cols, 0, w - 1)
-    if len(components) == 1:
-        return components[0].median[rows, cols]
-    out = np.empty(rows.shape, _FLOAT)
-    which = (rows % 2) * 2 + (cols % 2)  # components are ordered (0,0), (0,1), (1,0), (1,1)
-    for k, comp in enumerate(components):
-        sel = which == k
-        out[sel] = comp.median[rows[sel] // 2, cols[sel] // 2]
+class _Stacked:
+    """A per-pixel map stored component by component: (components, h/step, w/step), float32.
+
+    The fast detection works on polyphase components; keeping its maps in that layout
+    avoids strided writes of whole frames. ``at`` reads the values at full-image flat indices.
+    """
+
+    def __init__(self, shape, step: int):
+        self._height, self.width = shape
+        self.step = step
+        self.rows, self.cols = -(-shape[0] // step), -(-shape[1] // step)
+        self.data = np.zeros((step * step, self.rows, self.cols), _FLOAT)
+        self.flat = self.data.reshape(-1)
+
+    def part(self, comp: "_Component") -> np.ndarray:
+        """The (writable) block of one component, shaped like its values."""
+        k = comp.r0 * self.step + comp.c0
+        return self.data[k, :comp.values.shape[0], :comp.values.shape[1]]
+
+    def index(self, flat: np.ndarray) -> np.ndarray:
+        if self.step == 1:
+            return flat
+        rows, cols = np.divmod(flat, self.width)
+        return self._index(rows, cols)
+
+    def _index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        if self.step == 1:
+            return rows * self.width + cols
+        out = (rows & 1) * (2 * self.rows * self.cols)
+        out += (cols & 1) * (self.rows * self.cols)
+        out += (rows >> 1) * self.cols
+        out += cols >> 1
+        return out
+
+    def at(self, flat: np.ndarray) -> np.ndarray:
+        return self.flat[self.index(flat)]
+
+    def around(self, rows: np.ndarray, cols: np.ndarray, dr: np.ndarray, dc: np.ndarray) -> np.ndarray:
+        """Values at (rows + dr, cols + dc), shape (N, K), borders replicated."""
+        reach = int(max(np.abs(dr).max(), np.abs(dc).max()))
+        rr = rows.astype(np.intp)[:, None] + dr[None, :]
+        cc = cols.astype(np.intp)[:, None] + dc[None, :]
+        near_border = ((rows < reach) | (rows >= self._height - reach)
+                       | (cols < reach) | (cols >= self.width - reach))
+        if near_border.any():
+            rr[near_border] = np.clip(rr[near_border], 0, self._height - 1)
+            cc[near_border] = np.clip(cc[near_border], 0, self.width - 1)
+        return self.flat[self._index(rr, cc)]
+
+
+def _stacked_medians(components: list[_Component], shape) -> _Stacked:
+    out = _Stacked(shape, components[0].step)
+    for comp in components:
+        out.part(comp)[...] = comp.median
     return out
 
 
 def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, count: int,
-                      photon_counting: bool, shape) -> np.ndarray:
+                      photon_counting: bool, x: np.ndarray, fast_residual: "_Stacked") -> np.ndarray:
     """Flat indices of about ``count`` pixels in the flattest half of the image.
 
     Texture and edges inflate the residual and would bias the noise fit
@@ -574,23 +639,33 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
     local slope of the detection median (between
     the direct neighbours, whose medians use other samples than the pixel's own) is at most
     the median slope, the slope being divided by sqrt(m) for photon-counting channels so
-    that bright areas are not excluded just for their larger noise. Regular subsample
+    that bright areas are not excluded just for their larger noise. A median flattens fine
+    texture (line patterns, meshes), so its slope does not see it; the pixels must also be
+    at most as busy as the median pixel, busy meaning the mean absolute residual to the
+    fast median of the 8 pixels three steps away (scaled like the slope; those pixels and
+    their median samples all have an odd offset, so they share no pixel with the residual
+    the fit uses, and selecting on them does not bias the fitted noise). Regular subsample
     (deterministic).
     """
-    h, w = shape
+    shape = h, w = x.shape
     candidates = _subsample_indices(h * w, 2 * count)
     if valid is not None:
         candidates = candidates[valid.ravel()[candidates]]
     if candidates.size < 32:
         return candidates
     rows, cols = np.divmod(candidates, w)
-    slope = (np.abs(_median_lookup(components, rows, cols + 1, shape)
-                    - _median_lookup(components, rows, cols - 1, shape))
-             + np.abs(_median_lookup(components, rows + 1, cols, shape)
-                      - _median_lookup(components, rows - 1, cols, shape)))
+    median = _stacked_medians(components, shape)
+    around = median.around(rows, cols, np.array([0, 0, 1, -1]), np.array([1, -1, 0, 0]))
+    del median
+    slope = np.abs(around[:, 0] - around[:, 1]) + np.abs(around[:, 2] - around[:, 3])
+    ring_dr = np.array([-3, -3, -3, 0, 0, 3, 3, 3])
+    ring_dc = np.array([-3, 0, 3, -3, 3, -3, 0, 3])
+    busy = np.abs(fast_residual.around(rows, cols, ring_dr, ring_dc)).mean(axis=1)
     if photon_counting:
-        slope = slope / np.sqrt(np.abs(_median_lookup(components, rows, cols, shape)) + 1.0)
-    return candidates[slope <= np.median(slope)]
+        scale = np.sqrt(np.abs(x.ravel()[candidates] - fast_residual.at(candidates)) + 1.0)
+        slope = slope / scale
+        busy = busy / scale
+    return candidates[(slope <= np.median(slope)) & (busy <= np.median(busy))]
 
 
 def _subsample_indices(n: int, count: int) -> np.ndarray:
@@ -602,7 +677,7 @@ def _subsample_indices(n: int, count: int) -> np.ndarray:
 
 
 def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_counting: bool,
-                   bright_only: bool, valid: np.ndarray | None = None, circular: bool = False,
+                   polarity: int, valid: np.ndarray | None = None, circular: bool = False,
                    value_range: float | None = None, residual_weight: np.ndarray | None = None,
                    in_place: bool = False, fit_region: np.ndarray | None = None):
     """Detect and replace pulses in one float32 channel (``in_place``: in ``x`` itself).
@@ -631,32 +706,36 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         value_range = float(x.max() - x.min())
     value_range = max(value_range, 1e-12)
     components = _detection_components(x, params.window_px)
+    fast_residual = _fast_residual(components, (h, w), circular, residual_weight)
     fit_valid = valid if fit_region is None else (fit_region if valid is None else valid & fit_region)
-    pick = _flat_area_sample(components, fit_valid, params.em_samples, photon_counting, (h, w))
+    pick = _flat_area_sample(components, fit_valid, params.em_samples, photon_counting, x, fast_residual)
     if pick.size < 16 and fit_region is not None:  # too few: fit on every valid pixel
-        pick = _flat_area_sample(components, valid, params.em_samples, photon_counting, (h, w))
+        pick = _flat_area_sample(components, valid, params.em_samples, photon_counting, x, fast_residual)
     if pick.size < 16:
         return x, mask_total, None
     d_fit, m_fit = _exact_residual(x, *np.divmod(pick, w), params.window_px, circular, residual_weight)
-    model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, bright_only=bright_only,
+    model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, polarity=polarity,
                          value_range=value_range, iterations=params.em_iterations)
     del d_fit, m_fit, pick
     if photon_counting:
         model.min_contrast = float(params.min_contrast)
     valid_flat = None if valid is None else valid.ravel()
     scratch = np.zeros((h, w), np.uint8)  # 1: pulse of this pass, 2: ring under test
+    near_scratch = np.zeros((h, w), np.uint8)  # within 2 px of a pulse (growth's texture guard)
     reach = 1 if params.window_px == 3 else 2
     to_check = None
     for _ in range(passes):
         if to_check is None:
-            candidates = _prefilter(components, model, params, circular, residual_weight, w)
+            candidates = _prefilter(components, model, params, fast_residual)
             del components
         else:
             candidates = to_check
         if valid_flat is not None:
             candidates = candidates[valid_flat[candidates]]
         seeds = _exact_test(x, candidates, model, params, circular, residual_weight)
-        pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch)
+        seeds = seeds[~_in_texture(fast_residual, seeds, x, model)]
+        pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch,
+                               fast_residual, near_scratch)
         if pulses.size == 0:
             break
         rows, cols = np.divmod(pulses, w)
@@ -665,6 +744,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         scratch.ravel()[pulses] = 0
         keep = np.isfinite(repl)
         x.ravel()[pulses[keep]] = repl[keep].astype(_FLOAT)
+        fast_residual.flat[fast_residual.index(pulses)] = 0.0  # replaced: no longer busy (texture guard)
         mask_total.ravel()[pulses] = True
         dr, dc = _window_offsets(2 * reach + 1)
         to_check = _sorted_unique(_flat_indices(rows, cols, dr, dc, (h, w)))
@@ -683,9 +763,23 @@ def _exact_residual(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: 
     return d, med
 
 
+def _fast_residual(components: list[_Component], shape, circular: bool,
+                   residual_weight: np.ndarray | None) -> _Stacked:
+    """Residual of every pixel to its fast detection median (float32, weighted like the test)."""
+    residual = _Stacked(shape, components[0].step)
+    for comp in components:
+        d = residual.part(comp)
+        np.subtract(comp.values, comp.median, out=d)
+        if circular:
+            d -= np.rint(d)
+        if residual_weight is not None:
+            d *= residual_weight[comp.r0::comp.step, comp.c0::comp.step]
+    return residual
+
+
 def _prefilter(components: list[_Component], model: _NoiseModel, params: ImpulseParams,
-               circular: bool, residual_weight: np.ndarray | None, width: int) -> np.ndarray:
-    """Flat indices of pulse candidates from the cheap centre-including medians.
+               residual: _Stacked) -> np.ndarray:
+    """Flat indices of pulse candidates from the residuals to the cheap centre-including medians.
 
     Nearly a superset of the pulses of the exact test (see ``_PREFILTER_FRACTION``): the
     residual to the fast median must exceed
@@ -693,6 +787,7 @@ def _prefilter(components: list[_Component], model: _NoiseModel, params: Impulse
     (the log term of the threshold is bounded by its value at the largest variance), so the
     full-image work is a handful of array operations without logarithms.
     """
+    width = residual.width
     const = model.log_odds_constant(params.posterior_threshold, model.pulse_rate)
     fraction2 = _PREFILTER_FRACTION ** 2
     if model.a > 0:
@@ -703,25 +798,70 @@ def _prefilter(components: list[_Component], model: _NoiseModel, params: Impulse
         factor = const - math.log(s2)
     found = []
     for comp in components:
-        d = np.subtract(comp.values, comp.median, dtype=_FLOAT)
-        if circular:
-            d -= np.rint(d)
-        if residual_weight is not None:
-            d *= residual_weight[comp.r0::comp.step, comp.c0::comp.step]
+        d = residual.part(comp).copy()
         if factor <= 0:  # degenerate fit: test every pixel exactly
-            candidates = d > 0 if model.bright_only else d != 0
+            candidates = d * model.polarity > 0 if model.polarity else d != 0
         elif model.a > 0:
             s2 = np.multiply(comp.median, _FLOAT(model.a * fraction2 * factor), dtype=_FLOAT)
             s2 += _FLOAT(model.b * fraction2 * factor)
             np.maximum(s2, _FLOAT(model.var_floor * fraction2 * factor), out=s2)
-            candidates = d > 0 if model.bright_only else None
+            candidates = d * _FLOAT(model.polarity) > 0 if model.polarity else None
             d *= d
             candidates = d > s2 if candidates is None else candidates & (d > s2)
         else:
             threshold = _FLOAT(_PREFILTER_FRACTION * math.sqrt(s2 * factor))
-            candidates = d > threshold if model.bright_only else np.abs(d) > threshold
+            candidates = d * _FLOAT(model.polarity) > threshold if model.polarity else np.abs(d) > threshold
         found.append(comp.to_flat(np.flatnonzero(candidates), width))
     return np.concatenate(found)
+
+
+def _in_texture(residual: _Stacked, pixels: np.ndarray, x: np.ndarray, model: "_NoiseModel",
+                reference: np.ndarray | None = None, ignore: np.ndarray | None = None,
+                chunk: int = 65536) -> np.ndarray:
+    """True where the annulus around a pixel is busier than a pulse's can be (texture guard).
+
+    ``residual``: the fast-median residual map of :func:`_prefilter`; ``pixels``: flat
+    indices; ``reference``: the residual busy pixels are compared with (default: each
+    pixel's own to the fast median; a patch rim uses its excess over its background),
+    never less than ``_BUSY_SIGMAS`` noise sigmas; ``x`` and ``model``: the
+    channel and its noise model (for the noise-relative count); ``ignore`` (flat uint8,
+    optional): pixels left out of the annulus (next to detected pulses, whose fast median
+    the pulse pulls up). Fewer than a third of the annulus left: not texture.
+    """
+    out = np.zeros(pixels.size, bool)
+    if pixels.size == 0:
+        return out
+    dr, dc = _window_offsets(2 * _TEXTURE_OUTER_PX + 1)
+    on = np.maximum(np.abs(dr), np.abs(dc)) >= _TEXTURE_INNER_PX
+    dr, dc = dr[on], dc[on]
+    flat_x = x.ravel()
+
+    for start in range(0, pixels.size, chunk):
+        part = pixels[start:start + chunk]
+        rows, cols = np.divmod(part, x.shape[1])
+        own_residual = residual.at(part)
+        own = own_residual if reference is None else reference[start:start + chunk]
+        if model.a > 0:
+            own_noise2 = model.variance(flat_x[part] - own_residual)
+        else:
+            own_noise2 = max(model.b, model.var_floor)
+        # At least the noise-relative level: a weak pulse or rim is not texture for noise.
+        level = np.maximum(np.abs(own) * _BUSY_RELATIVE, _BUSY_SIGMAS * np.sqrt(own_noise2)).astype(_FLOAT)
+        idx = _flat_indices(rows, cols, dr, dc, x.shape)
+        around_signed = residual.around(rows, cols, dr, dc)
+        around = np.abs(around_signed)
+        counted = np.ones(idx.shape, bool) if ignore is None else ignore[idx] == 0
+        n_counted = np.count_nonzero(counted, axis=1)
+        busy = np.count_nonzero((around > level[:, None]) & counted, axis=1) > _TEXTURE_BUSY_FRACTION * n_counted
+        if model.a > 0:  # photon counting: variance at the fast median x - residual
+            noise2 = model.variance(flat_x[idx] - around_signed).astype(_FLOAT)
+        else:
+            noise2 = _FLOAT(max(model.b, model.var_floor))
+        around *= around
+        noisy = (around > _FLOAT(_BUSY_SIGMAS ** 2) * noise2) & counted
+        busy |= np.count_nonzero(noisy, axis=1) > _TEXTURE_NOISY_FRACTION * n_counted
+        out[start:start + chunk] = busy & (n_counted * 3 >= dr.size)
+    return out
 
 
 def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, params: ImpulseParams,
@@ -746,7 +886,8 @@ def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, param
 
 def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: ImpulseParams,
                   valid_flat: np.ndarray | None, circular: bool,
-                  residual_weight: np.ndarray | None, scratch: np.ndarray) -> np.ndarray:
+                  residual_weight: np.ndarray | None, scratch: np.ndarray,
+                  fast_residual: _Stacked, near_scratch: np.ndarray) -> np.ndarray:
     """Add neighbours of detected pulses that are pulses against their background.
 
     Each round tests the ring of pixels next to the pulses against the median of the
@@ -757,8 +898,11 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
     prior pulse probability ``params.neighbour_prior``: pulses come as patches and tracks,
     so their fainter rims are accepted at a lower significance.
 
-    ``seeds`` and the result are flat indices; ``scratch`` (uint8, zero) is used to mark
-    pulses and ring and is zero again on return.
+    Grown pixels also pass the texture guard (:func:`_in_texture`), relative to their
+    excess over the background and ignoring pixels within 2 px of the pulses found so far.
+
+    ``seeds`` and the result are flat indices; ``scratch`` and ``near_scratch`` (uint8,
+    zero) mark pulses and ring, and the neighbourhood of pulses; both are zero on return.
     """
     if seeds.size == 0:
         return seeds
@@ -769,6 +913,10 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
     dc8 = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
     pulses = seeds
     marks[pulses] = 1
+    near_flat = near_scratch.ravel()
+    dr5, dc5 = _window_offsets(5)
+    near_marked = [_flat_indices(*np.divmod(seeds, w), dr5, dc5, (h, w))]
+    near_flat[near_marked[0]] = 1
     for _ in range(params.max_patch_px):
         rows, cols = np.divmod(pulses, w)
         ring = _sorted_unique(_flat_indices(rows, cols, dr8, dc8, (h, w)))
@@ -793,11 +941,20 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
         new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold, prior=prior,
                                  min_variance=spread[ok] ** 2)
         marks[ring] = 0
+        if new.any():
+            # Texture guard as for seeds, relative to the pixel's excess over its background.
+            grown = ring[new]
+            texture = _in_texture(fast_residual, grown, x, model, d[new], near_flat)
+            new[np.flatnonzero(new)[texture]] = False
         if not new.any():
             break
         marks[ring[new]] = 1
+        near_marked.append(_flat_indices(*np.divmod(ring[new], w), dr5, dc5, (h, w)))
+        near_flat[near_marked[-1]] = 1
         pulses = np.concatenate([pulses, ring[new]])
     marks[pulses] = 0
+    for marked in near_marked:
+        near_flat[marked] = 0
     return pulses
 
 
@@ -822,7 +979,7 @@ def _gain(model: _NoiseModel | None, params: ImpulseParams) -> float:
 def _remove_grey(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     x = image.astype(_FLOAT)
     cleaned, mask, model = _clean_channel(x, passes=params.passes_grey, params=params,
-                                          photon_counting=True, bright_only=params.bright_only)
+                                          photon_counting=True, polarity=_POLARITY_SIGN[params.spots])
     out = image.copy()
     if mask.any():
         # Only pulse pixels are written: medians computed in float32 (exact for integer
@@ -837,7 +994,7 @@ def _remove_grey_of_rgb(image: np.ndarray, params: ImpulseParams) -> ImpulseResu
     """Detect on the channel sum (still photon counting) and replace R, G, B at the pulses."""
     grey = image.astype(_FLOAT).sum(axis=2)
     _, mask, model = _clean_channel(grey, passes=params.passes_grey, params=params,
-                                    photon_counting=True, bright_only=params.bright_only)
+                                    photon_counting=True, polarity=_POLARITY_SIGN[params.spots])
     out = image.copy()
     if mask.any():
         rows, cols = np.nonzero(mask)
@@ -1000,7 +1157,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
 
     # V first: bright zingers are clearest there, and a cleaner V defines the hue mask better.
     v_new, mask_v, model_v = _clean_channel(v, passes=params.passes_v, params=params,
-                                            photon_counting=True, bright_only=params.bright_only,
+                                            photon_counting=True, polarity=_POLARITY_SIGN[params.spots],
                                             in_place=True)
     _store("V", mask_v, model_v, True)
     # S and H are ratios of photon counts. Their noise follows from that of the counts,
@@ -1021,7 +1178,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     s_defined = s_local >= _FLOAT(params.min_saturation)
     del s_local
     s_new, mask_s, model_s = _clean_channel(s, passes=params.passes_s, params=params,
-                                            photon_counting=False, bright_only=False, value_range=1.0,
+                                            photon_counting=False, polarity=0, value_range=1.0,
                                             residual_weight=weight_s, in_place=True,
                                             fit_region=s_defined)
     del s_defined
@@ -1047,7 +1204,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     typical = weight_h[::7, ::7][hue_valid[::7, ::7]]
     weight_h /= max(float(np.median(typical)) if typical.size else 1.0, 1e-12)
     h_new, mask_h, model_h = _clean_channel(h_rot, passes=params.passes_h, params=params,
-                                            photon_counting=False, bright_only=False,
+                                            photon_counting=False, polarity=0,
                                             valid=hue_valid, circular=True, value_range=1.0,
                                             residual_weight=weight_h, in_place=True)
     del weight_h
@@ -1146,7 +1303,7 @@ def remove_impulses_cfa(planes: np.ndarray, params: ImpulseParams | None = None)
         plane = arr[i]
         cleaned, mask, model = _clean_channel(plane.astype(_FLOAT), passes=params.passes_grey,
                                               params=params, photon_counting=True,
-                                              bright_only=params.bright_only)
+                                              polarity=_POLARITY_SIGN[params.spots])
         if mask.any():
             out[i][mask] = _to_dtype(cleaned[mask].astype(np.float64), arr.dtype)
         masks[name] = mask
