@@ -117,6 +117,11 @@ _TEXTURE_BUSY_FRACTION = 0.2
 _BUSY_SIGMAS = 3.0
 _TEXTURE_NOISY_FRACTION = 0.35
 
+#: EM samples are left out where the image is this many times busier than usual (texture).
+#: A tighter cut (at the median) also removed noise-only samples selectively and biased
+#: the fitted gain by up to 20 %.
+_BUSY_SAMPLE_FACTOR = 1.5
+
 #: Percentage of the EM samples, the darkest, whose residual variance is the floor of the
 #: photon-counting variance model (the read-noise term; see ``_dark_end_variance``).
 _DARK_END_PERCENT = 1.0
@@ -125,6 +130,8 @@ _FLOAT = np.float32
 
 #: Pulse polarities and the sign of the residual each accepts (0: either sign).
 SPOT_POLARITIES = ("bright", "dark", "both")
+#: Where pulses are detected (see :func:`remove_impulses`; "cfa": raw Bayer planes).
+SPACES = ("auto", "grey", "hsv", "cfa")
 _POLARITY_SIGN = {"bright": 1, "dark": -1, "both": 0}
 
 
@@ -148,7 +155,8 @@ class ImpulseParams:
         3x3 px directly; larger ones are grown from their rim.
     max_patch_px : int
         Largest pulse patch side (px) to grow into, 1 to 8; sets the number of growth rounds
-        and the distance of the ring whose spread measures the background structure.
+        and the distance of the ring whose spread measures the background structure. Thin
+        tracks need no growth along them: each of their pixels is a seed.
     spots : str
         Polarity of the pulses on photon-counting channels (grey, V, CFA): ``"bright"``
         (direct X-ray hits on the sensor; the default), ``"dark"`` (e.g. an open-beam hit
@@ -175,6 +183,9 @@ class ImpulseParams:
         Pixels (regular subsample) used for the EM fit (>= 1000).
     em_iterations : int
         Maximum EM iterations (1 to 500).
+    space : str
+        ``"auto"`` (raw Bayer planes for camera raw input, HSV for RGB, grey for grey),
+        ``"grey"``, ``"hsv"`` or ``"cfa"`` (camera raw input only).
     """
 
     passes_h: int = 3
@@ -196,6 +207,9 @@ class ImpulseParams:
     min_value_fraction: float = 0.02
     em_samples: int = 250_000
     em_iterations: int = 30
+    space: str = field(default="auto", metadata={
+        "help": "where pulses are detected: auto (cfa for camera raw, hsv for RGB, grey for grey), "
+                "grey, hsv or cfa (raw Bayer planes)", "choices": SPACES})
 
     def __post_init__(self) -> None:
         for name in ("passes_h", "passes_s", "passes_v", "passes_grey"):
@@ -206,6 +220,8 @@ class ImpulseParams:
         _check_int("max_patch_px", self.max_patch_px, 1, 8)
         _check_int("em_samples", self.em_samples, 1000, 100_000_000)
         _check_int("em_iterations", self.em_iterations, 1, 500)
+        if self.space not in SPACES:
+            raise ParameterError(f"impulse.space: must be one of {', '.join(SPACES)}, got {self.space!r}")
         if self.spots not in SPOT_POLARITIES:
             raise ParameterError(f"impulse.spots: must be one of {', '.join(SPOT_POLARITIES)}, "
                                  f"got {self.spots!r}")
@@ -641,7 +657,8 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
     the median slope, the slope being divided by sqrt(m) for photon-counting channels so
     that bright areas are not excluded just for their larger noise. A median flattens fine
     texture (line patterns, meshes), so its slope does not see it; the pixels must also be
-    at most as busy as the median pixel, busy meaning the mean absolute residual to the
+    at most ``_BUSY_SAMPLE_FACTOR`` times as busy as the median pixel (a mean of 8
+    absolute noise residuals rarely is; texture far more), busy meaning the mean absolute residual to the
     fast median of the 8 pixels three steps away (scaled like the slope; those pixels and
     their median samples all have an odd offset, so they share no pixel with the residual
     the fit uses, and selecting on them does not bias the fitted noise). Regular subsample
@@ -665,7 +682,7 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
         scale = np.sqrt(np.abs(x.ravel()[candidates] - fast_residual.at(candidates)) + 1.0)
         slope = slope / scale
         busy = busy / scale
-    return candidates[(slope <= np.median(slope)) & (busy <= np.median(busy))]
+    return candidates[(slope <= np.median(slope)) & (busy <= _BUSY_SAMPLE_FACTOR * np.median(busy))]
 
 
 def _subsample_indices(n: int, count: int) -> np.ndarray:
@@ -739,6 +756,9 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         if pulses.size == 0:
             break
         rows, cols = np.divmod(pulses, w)
+        # Replacement values come from outside the detected patches. (Leaving out their 1-px
+        # rim as well changed the residual pulse energy by 1 % and doubled the damage of
+        # false alarms on thin anatomy: measured, not kept.)
         scratch.ravel()[pulses] = 1
         repl = _masked_median_at(x, scratch, rows, cols)
         scratch.ravel()[pulses] = 0
@@ -1223,7 +1243,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
 
 
 def remove_impulses(image: np.ndarray, params: ImpulseParams | None = None, *,
-                    space: str = "auto") -> ImpulseResult:
+                    space: str | None = None) -> ImpulseResult:
     """Detect and replace impulse noise (zingers) in a grey or RGB image.
 
     Parameters
@@ -1233,8 +1253,8 @@ def remove_impulses(image: np.ndarray, params: ImpulseParams | None = None, *,
         values (counts; never gamma-encoded), at least 8x8 px.
     params : ImpulseParams, optional
         Defaults: H 3 passes, S 1, V 1, grey 1; 5x5 detection median; bright-only pulses.
-    space : {"auto", "grey", "hsv"}
-        ``"auto"``: grey for 2-D input, HSV for RGB. ``"grey"`` on RGB detects on R+G+B
+    space : {"auto", "grey", "hsv"}, optional
+        Default ``params.space``. ``"auto"``: grey for 2-D input, HSV for RGB. ``"grey"`` on RGB detects on R+G+B
         and replaces all three channels at the detected pixels. ``"hsv"``: H, S and V
         separately (H circular, rotated so the dominant hue sits at 0.5; pixels with small S
         or V are left out of hue filtering).
@@ -1256,6 +1276,10 @@ def remove_impulses(image: np.ndarray, params: ImpulseParams | None = None, *,
     params = ImpulseParams() if params is None else params
     if not isinstance(params, ImpulseParams):
         raise ParameterError(f"impulse: params must be ImpulseParams, got {type(params).__name__}")
+    space = params.space if space is None else space
+    if space == "cfa":
+        raise ParameterError("impulse: space 'cfa' needs the raw Bayer planes of a camera raw file "
+                             "(remove_impulses_cfa); this image is already demosaiced")
     if space not in ("auto", "grey", "hsv"):
         raise ParameterError(f"impulse: space must be auto, grey or hsv, got {space!r}")
     arr = np.asarray(image)
