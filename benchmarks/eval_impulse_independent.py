@@ -45,7 +45,7 @@ SEEDS = {"dev": (1, 2), "heldout": (1001, 1002)}
 
 
 def _ours(image, spots="bright", space="auto"):
-    from napari_dslrxr.core.impulse import ImpulseParams, remove_impulses
+    from napari_dslrxr.core.stages.impulse import ImpulseParams, remove_impulses
 
     res = remove_impulses(image, ImpulseParams(spots=spots), space=space)
     return res.image, res.any_mask()
@@ -192,7 +192,7 @@ def mosaic_planes(rgb: np.ndarray) -> np.ndarray:
 
 
 def run_texture(seeds, methods):
-    from napari_dslrxr.core.impulse import ImpulseParams, remove_impulses_cfa
+    from napari_dslrxr.core.stages.impulse import ImpulseParams, remove_impulses_cfa
 
     rows = []
     tint = np.array(gen.TINTS["tinted"])
@@ -304,7 +304,7 @@ def run_real(methods):
     import tifffile
 
     rows = []
-    proto = load_test_module("tests/core/test_impulse_realdata.py", "niqa_protocol")
+    proto = load_test_module("tests/core/stages/test_impulse_realdata.py", "niqa_protocol")
     data = proto.load_niqa(gen.data_dir() / "niqa_edge")
     gain = _niqa_gain(data)
     runners = dict(METHODS, astroscrappy=_astroscrappy(gain=gain, read_noise=5.0))
