@@ -14,7 +14,7 @@ from .._lazy import lazy_exports
 #: Public names, by the module that defines them (imported on first use).
 _PUBLIC: dict[str, tuple[str, ...]] = {
     "mismatch": ("BASE_FREE", "DiagnosisOptions", "AddedTerm", "DiagnosisResult", "estimate_noise_model",
-        "residual_profiles", "multiscale_maps", "diagnose", "diagnose_scene", "clean_repeats",
+        "residual_profiles", "multiscale_maps", "diagnose", "diagnose_scene",
         "noise_model_from_repeats", "edge_object_from_image", "diagnose_edge_repeats"),
     "report": ("PROFILE_LABELS", "residual_maps_figure", "profiles_figure", "write_png_bytes",
         "render_html", "write_report"),

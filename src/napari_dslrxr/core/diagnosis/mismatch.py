@@ -836,34 +836,6 @@ def diagnose_scene(scene: Scene, recording: np.ndarray, options: DiagnosisOption
     return diagnose(recording, scene.thickness_mm, scene.grid(), scene.base_params(), options, progress)
 
 
-def clean_repeats(frames: np.ndarray, z_threshold: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of repeated frames with impulsive spots replaced by the temporal median.
-
-    Parameters
-    ----------
-    frames : ndarray, (N, H, W)
-        Repeated exposures (DN), N >= 3.
-    z_threshold : float
-        A pixel of a frame is a spot when it exceeds the temporal median by more than this many
-        robust (MAD) standard deviations of the frame-minus-median difference.
-
-    Returns
-    -------
-    mean : ndarray, float64, (H, W)
-    spot_fraction : ndarray, float64, (N,)
-        Fraction of pixels replaced per frame.
-    """
-    frames = np.asarray(frames, dtype=np.float64)
-    if frames.ndim != 3 or frames.shape[0] < 3:
-        raise InputError(None, f"need at least 3 repeated 2-D frames, got shape {frames.shape}")
-    median = np.median(frames, axis=0)
-    diff = frames - median
-    sigma = 1.4826 * np.median(np.abs(diff), axis=(1, 2), keepdims=True)
-    spots = diff > z_threshold * sigma
-    cleaned = np.where(spots, median, frames)
-    return cleaned.mean(axis=0), spots.mean(axis=(1, 2))
-
-
 def noise_model_from_repeats(frames: np.ndarray, binning: int, n_bins: int = 24) -> tuple[float, float]:
     """``(K, c)``, ``var = K · level + c`` (DN², absolute level), of the mean of ``frames``
     block-averaged ``binning``×, from the repeats themselves.
@@ -873,7 +845,7 @@ def noise_model_from_repeats(frames: np.ndarray, binning: int, n_bins: int = 24)
     estimate on one image misses (scintillator light spread makes the noise correlated). Each
     half's global gain/offset difference (source output drift) and a very smooth drift map are
     removed first; then a robust (MAD) variance per bin of block level and a straight line.
-    Spots must already be replaced (:func:`clean_repeats`).
+    Spots must already be replaced (by the temporal median, as :func:`diagnose_edge_repeats` does).
     """
     from scipy import ndimage
 
@@ -939,8 +911,8 @@ def diagnose_edge_repeats(frames: np.ndarray, *, dark_frame: np.ndarray | None =
     """Diagnose repeated recordings of an opaque plate edge (no thickness map available).
 
     Steps: flat-field correction with the smoothed open-beam frame (if given; median 5×5 then
-    Gaussian sigma 3 px, normalised to median 1); spots replaced by the temporal median and the
-    frames averaged (:func:`clean_repeats`); the ideal edge map derived from the mean image
+    Gaussian sigma 3 px, normalised to median 1); spots (more than 6 robust sigmas above the
+    temporal median) replaced by that median and the frames averaged; the ideal edge map derived from the mean image
     (:func:`edge_object_from_image`, a unit-thickness "material" whose attenuation is fitted);
     the noise model of the binned mean from the even/odd half difference
     (:func:`noise_model_from_repeats`); the offset held at the dark frame's median (it separates
