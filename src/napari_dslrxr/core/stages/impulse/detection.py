@@ -101,8 +101,12 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     if pick.size < 16:
         return x, mask_total, None
     d_fit, m_fit = _exact_residual(x, *np.divmod(pick, w), params.window_px, circular, residual_weight)
-    model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, polarity=polarity,
+    # Dark spots are sought in frames that still hold bright ones (direct hits): a dark-only
+    # mixture would take those for noise and inflate its variance, so the fit is two-sided.
+    model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, polarity=max(polarity, 0),
                          value_range=value_range, iterations=params.em_iterations)
+    if polarity < 0:
+        model.polarity, model.pulse_density = -1, 1.0 / value_range
     del d_fit, m_fit, pick
     if photon_counting:
         model.min_contrast = float(params.min_contrast)
