@@ -150,3 +150,70 @@ def test_metrics_pe_and_gcf_print_the_numbers(tmp_path, capsys):
     assert float(capsys.readouterr().out.strip()) == pytest.approx(global_contrast_factor(edge), rel=1e-5)
     assert main(["metrics", "pe", str(pa), str(pb), "--roi", "0,0,9,8"]) == 2
     one_line_error(capsys)
+
+
+# --------------------------------------------------------------------------- parameter file
+
+
+def grey_with_dark_spots(rng):
+    """A smooth grey frame with dark square spots (an open-beam hit after normalisation)."""
+    clean = helpers.smooth_scene((128, 160))
+    noisy = helpers.poisson_image(clean, 2.0, rng)
+    truth = np.zeros(noisy.shape, bool)
+    for _ in range(25):
+        side = int(rng.integers(1, 4))
+        r, c = rng.integers(6, 120 - side), rng.integers(6, 150 - side)
+        truth[r:r + side, c:c + side] = True
+    noisy[truth] *= 0.3
+    return np.clip(np.rint(noisy), 0, 65535).astype(np.uint16), truth
+
+
+def test_denoise_reads_every_impulse_key_of_the_parameter_file(tmp_path, rng):
+    """The dslrxr process itself: -c params.toml sets spots, window, thresholds, passes, space."""
+    import subprocess
+    import sys
+
+    image, truth = grey_with_dark_spots(rng)
+    src = tmp_path / "dark.tif"
+    tifffile.imwrite(src, image)
+    params = tmp_path / "params.toml"
+    params.write_text('[impulse]\nspots = "dark"\nwindow_px = 3\nposterior_threshold = 0.6\n'
+                      'min_contrast = 0.05\npasses_grey = 2\nspace = "grey"\nmax_patch_px = 3\n')
+    out, default_out = tmp_path / "clean.tif", tmp_path / "default.tif"
+    run = [sys.executable, "-m", "napari_dslrxr.cli", "denoise", str(src)]
+    done = subprocess.run([*run, "-o", str(out), "-c", str(params), "--mask-out", str(tmp_path / "m.tif")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    sidecar = json.loads(Path(str(out) + ".json").read_text())["parameters"]
+    assert (sidecar["spots"], sidecar["window_px"], sidecar["posterior_threshold"], sidecar["min_contrast"],
+            sidecar["passes_grey"], sidecar["space"], sidecar["max_patch_px"]) == ("dark", 3, 0.6, 0.05, 2, "grey", 3)
+    mask = tifffile.imread(tmp_path / "m.tif") > 0
+    assert np.count_nonzero(mask & truth) >= 0.95 * truth.sum()
+    assert np.count_nonzero(mask & ~truth) <= 0.05 * mask.sum()
+    # Without the file the default polarity (bright) leaves the dark spots alone.
+    done = subprocess.run([*run, "-o", str(default_out)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert np.array_equal(tifffile.imread(default_out)[truth], image[truth])
+
+
+def test_denoise_options_override_the_file_and_bad_keys_fail(tmp_path, rng, capsys):
+    image, truth = grey_with_dark_spots(rng)
+    src = tmp_path / "dark.tif"
+    tifffile.imwrite(src, image)
+    params = tmp_path / "params.toml"
+    params.write_text('[impulse]\nspots = "bright"\nwindow_px = 3\n')
+    out = tmp_path / "out.tif"
+    assert main(["denoise", str(src), "-o", str(out), "-c", str(params), "--spots", "both", "--window", "5"]) == 0
+    sidecar = json.loads(Path(str(out) + ".json").read_text())["parameters"]
+    assert sidecar["spots"] == "both" and sidecar["window_px"] == 5
+    cleaned = tifffile.imread(out)
+    assert np.count_nonzero(cleaned[truth] != image[truth]) >= 0.95 * truth.sum()
+    for text, key in (('[impulse]\nspot = "dark"\n', "spot"), ('[impulse]\nspots = "grey"\n', "spots"),
+                      ('[impulse]\nwindow_px = 4\n', "window_px")):
+        params.write_text(text)
+        bad_out = tmp_path / "bad.tif"
+        assert main(["denoise", str(src), "-o", str(bad_out), "-c", str(params)]) == 2
+        assert key in one_line_error(capsys)
+        assert not bad_out.exists()
+    assert main(["denoise", str(src), "-o", str(tmp_path / "bad.tif"), "--spots", "up"]) == 2
+    assert "spots" in one_line_error(capsys)

@@ -85,3 +85,31 @@ def test_sample_radiograph_pulses_found_and_gain_estimated(make_napari_viewer, w
     assert np.count_nonzero(found & ~injected & screen) < 0.01 * screen.sum()
     # V = max(R, G, B) is the green channel here: its gain is the camera's (2 counts/photon).
     assert widget.result.gain["V"] == pytest.approx(truth.camera_gain_counts_per_photon, rel=0.1)
+
+
+def test_dark_spots_choice_clicked_through_the_button(make_napari_viewer, qtbot, rng):
+    """Choose "dark" in the spots box, click the button: dark spots are replaced, and the
+    choice goes into the parameters the widget saves."""
+    from qtpy.QtCore import Qt
+
+    yy, xx = np.mgrid[:160, :160]
+    image = rng.poisson(900 + 400 * np.sin(xx / 25.0) ** 2).astype(np.float64)
+    truth = np.zeros(image.shape, bool)
+    for r, c in rng.integers(8, 150, (25, 2)):
+        truth[r:r + 2, c:c + 2] = True
+    image[truth] *= 0.25
+    image = image.astype(np.uint16)
+    viewer, widget = _docked(make_napari_viewer)
+    widget._image.value = viewer.add_image(image, name="normalised")
+    widget._spots.value = "dark"
+    qtbot.mouseClick(widget._run_button.native, Qt.LeftButton)
+    qtbot.waitUntil(lambda: widget.result is not None and widget._run_button.enabled, timeout=60_000)
+    mask = viewer.layers["normalised pulses grey"].data > 0
+    assert np.count_nonzero(mask & truth) >= 0.95 * truth.sum()
+    assert np.count_nonzero(mask & ~truth) <= 0.002 * image.size
+    assert widget.get_params().spots == "dark"
+    from napari_dslrxr.core.stages.impulse import ImpulseParams
+
+    widget.set_params(ImpulseParams(spots="both"))
+    assert widget._spots.value == "both"
+

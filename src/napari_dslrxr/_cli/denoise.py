@@ -3,7 +3,9 @@
 ``denoise`` writes a TIFF with the input's shape and dtype (for camera raw input, the
 linear 16-bit RGB) in which only detected pulses are replaced, optionally a uint8 mask
 TIFF (255 where any channel's pixel was replaced), and a provenance sidecar beside each
-output holding the estimated gain and pulse rate of every channel.
+output holding the estimated gain and pulse rate of every channel. Its parameters are the
+``[impulse]`` section of a parameter file (``-c``); options given on the command line
+override the file's values.
 """
 
 from __future__ import annotations
@@ -15,8 +17,6 @@ from typing import Optional
 import typer
 
 from .common import HELP_MARKUP_MODE
-
-SPACES = ("auto", "grey", "hsv", "cfa")
 
 
 def parse_passes(text: str | None) -> dict[str, int]:
@@ -46,8 +46,22 @@ def _results(result) -> dict:
     }
 
 
-def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, space: str = "auto",
-                 mask_out: Path | None = None) -> dict:
+def impulse_params(config: Path | None = None, *, passes: str | None = None, **overrides):
+    """The ``[impulse]`` parameters of ``config`` (defaults without one), with the command
+    line's options (those not None) on top; every value is checked as the file's are."""
+    from ..core.params import PipelineParams, load_params, params_from_dict, params_to_dict
+
+    params = load_params(config) if config is not None else PipelineParams()
+    section = params_to_dict(params)["impulse"]
+    section.update(parse_passes(passes))
+    section.update({k: v for k, v in overrides.items() if v is not None})
+    return params_from_dict({"impulse": section}).impulse
+
+
+def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, space: str | None = None,
+                 mask_out: Path | None = None, config: Path | None = None, spots: str | None = None,
+                 window_px: int | None = None, posterior_threshold: float | None = None,
+                 min_contrast: float | None = None) -> dict:
     """Run impulse removal on one file and write the outputs; return the sidecar results."""
     import dataclasses
 
@@ -55,7 +69,6 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
 
     from ..core.errors import ParameterError
     from ..core.stages.impulse import (
-        ImpulseParams,
         cfa_mask_to_mosaic,
         demosaic_cleaned_raw,
         remove_impulses,
@@ -65,9 +78,9 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
     from ..core.io.provenance import write_sidecar
     from .common import ensure_parent
 
-    if space not in SPACES:
-        raise ParameterError(f"--space: must be one of {', '.join(SPACES)}, got {space!r}")
-    params = ImpulseParams(**parse_passes(passes))
+    params = impulse_params(config, passes=passes, space=space, spots=spots, window_px=window_px,
+                            posterior_threshold=posterior_threshold, min_contrast=min_contrast)
+    space = params.space
     if mask_out is not None and Path(mask_out).resolve() == Path(output).resolve():
         raise ParameterError("--mask-out must differ from the output file")
     check_not_an_input(output, [input_path])
@@ -86,12 +99,12 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
         image = demosaic_cleaned_raw(input_path, result.image, loaded.raw)
         mask = cfa_mask_to_mosaic(result.masks, loaded.raw.plane_offsets, image.shape[:2])
     else:
-        result = remove_impulses(loaded.data, params, space=used_space)
+        result = remove_impulses(loaded.data, dataclasses.replace(params, space=used_space))
         image = result.image
         mask = result.any_mask()
     t_denoise = time.perf_counter() - t0
     results = {"space": used_space, **_results(result)}
-    parameters = {**dataclasses.asdict(params), "space": used_space}
+    parameters = {**dataclasses.asdict(params), "space": used_space, "space_requested": space}
     timings = {"read": t_read, "denoise": t_denoise}
     ensure_parent(output)
     write_tiff(output, image, inputs=[input_path])
@@ -112,12 +125,22 @@ def register(app: typer.Typer) -> None:
     def denoise_command(
         input_path: Path = typer.Argument(..., metavar="INPUT", help="Linear image: TIFF, PNG, DICOM or camera raw."),
         output: Path = typer.Option(..., "-o", "--output", help="Output TIFF (input's shape and dtype; raw: 16-bit RGB)."),
+        config: Optional[Path] = typer.Option(None, "-c", "--config", help="Parameter file: its [impulse] section (dslrxr params --default)."),
         passes: Optional[str] = typer.Option(None, "--passes", help="H,S,V passes (default 3,1,1), or one number for grey/CFA."),
-        space: str = typer.Option("auto", "--space", help="auto | grey | hsv | cfa (auto: cfa for raw, hsv for RGB, grey for grey)."),
+        space: Optional[str] = typer.Option(None, "--space", help="auto | grey | hsv | cfa (auto: cfa for raw, hsv for RGB, grey for grey)."),
+        spots: Optional[str] = typer.Option(None, "--spots", help="bright | dark | both: polarity of the pulses (default bright)."),
+        window_px: Optional[int] = typer.Option(None, "--window", help="Detection window, 3 or 5 px (default 5)."),
+        threshold: Optional[float] = typer.Option(None, "--threshold", help="Posterior pulse probability above which a pixel is a pulse (0 < t < 1; default 0.5)."),
+        min_contrast: Optional[float] = typer.Option(None, "--min-contrast", help="Least Weber contrast of a pulse on grey/V/CFA channels (0 to 1; default 0.07)."),
         mask_out: Optional[Path] = typer.Option(None, "--mask-out", help="uint8 TIFF, 255 where a pixel was replaced."),
     ) -> None:
-        """Remove impulse noise (zingers) from INPUT: only detected pulses are replaced."""
-        results = denoise_file(input_path, output, passes=passes, space=space, mask_out=mask_out)
+        """Remove impulse noise (zingers) from INPUT: only detected pulses are replaced.
+
+        Parameters come from the [impulse] section of -c FILE (every key: passes, window,
+        thresholds, spots, space...); the options above override it."""
+        results = denoise_file(input_path, output, passes=passes, space=space, mask_out=mask_out,
+                               config=config, spots=spots, window_px=window_px,
+                               posterior_threshold=threshold, min_contrast=min_contrast)
         rates = ", ".join(f"{k} {v:.4g}" for k, v in results["pulse_rate"].items())
         gains = ", ".join(f"{k} {v:.4g}" for k, v in results["gain"].items() if v == v)
         typer.echo(f"{output}: space {results['space']}; pulse rate {rates}; gain {gains or 'n/a'}")

@@ -1,9 +1,10 @@
 """Impulse-noise (zinger) removal widget over :func:`napari_dslrxr.core.stages.impulse.remove_impulses`.
 
-The user picks an image layer, the colour space and the passes per channel (H, S, V for
-colour, grey for grey images). The cleaned image appears as ``"<layer> cleaned"`` and the
-detected pulses of each channel as a Labels layer ``"<layer> pulses <channel>"`` (one label
-value per channel, so noise patches of H, S and V can be compared by colour). Pulse counts,
+The user picks an image layer, the colour space, the passes per channel (H, S, V for
+colour, grey for grey images) and the polarity of the spots (bright, dark or both). The
+cleaned image appears as ``"<layer> cleaned"`` and the detected pulses of each channel as
+a Labels layer ``"<layer> pulses <channel>"`` (one label value per channel, so noise
+patches of H, S and V can be compared by colour). Pulse counts,
 the estimated pulse rate and the estimated Poisson gain are shown under the button.
 """
 
@@ -60,6 +61,7 @@ class ImpulseWidget(Container):
             for name in ("H", "S", "V", "grey")
         }
         self._window = param_widget(ImpulseParams, "window_px", label="median window (px)", section="impulse")
+        self._spots = param_widget(ImpulseParams, "spots", label="spots", section="impulse")
         self._run_button = PushButton(text="Remove impulses",
                                       tooltip="detect the pulses and replace them by the local median; adds "
                                               "'<image> cleaned' and one pulse-mask layer per channel")
@@ -67,7 +69,7 @@ class ImpulseWidget(Container):
         self._job = JobPanel()
         self._readout = readout_label()
         super().__init__(widgets=[self._image, self._space, *self._passes.values(), self._window,
-                                  self._run_button, *self._job.widgets, self._readout, self._restore])
+                                  self._spots, self._run_button, *self._job.widgets, self._readout, self._restore])
         self._extra: dict = {}
         self.result: ImpulseResult | None = None
         self._run_button.changed.connect(self.run)
@@ -79,6 +81,8 @@ class ImpulseWidget(Container):
         values = dict(self._extra)
         values.update({f"passes_{k.lower()}": int(w.value) for k, w in self._passes.items()})
         values["window_px"] = int(self._window.value)
+        values["spots"] = str(self._spots.value)
+        values["space"] = str(self._space.value)
         return ImpulseParams(**values)
 
     def set_params(self, params: ImpulseParams) -> None:
@@ -89,6 +93,9 @@ class ImpulseWidget(Container):
         for name, widget in self._passes.items():
             widget.value = values.pop(f"passes_{name.lower()}")
         self._window.value = values.pop("window_px")
+        self._spots.value = values.pop("spots")
+        if values["space"] in self._space.choices:  # "cfa" (raw files) stays in the saved file
+            self._space.value = values.pop("space")
         self._extra = values
 
     # -- action ----------------------------------------------------------------------------

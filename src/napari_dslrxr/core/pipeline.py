@@ -833,7 +833,7 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     t_cfa = time.perf_counter()
     if loaded.format == "raw":
         black = 0.0  # rawpy's linear RGB has the black level subtracted already
-        if loaded.raw is not None and params.impulse.passes_grey > 0:
+        if loaded.raw is not None and params.impulse.passes_grey > 0 and params.impulse.space in ("auto", "cfa"):
             # stage (i) on the Bayer planes, before demosaicing spreads each zinger
             from .stages.impulse import demosaic_cleaned_raw, remove_impulses_cfa
 

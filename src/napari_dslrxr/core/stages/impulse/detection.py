@@ -1,0 +1,390 @@
+"""Detection of the impulse stage: candidates from fast medians, the exact posterior test,
+the texture guard, patch growth, and the detect-and-replace loop of one channel."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .neighbourhoods import (
+    _Component,
+    _detection_components,
+    _flat_indices,
+    _masked_median_at,
+    _ring_median_at,
+    _sorted_unique,
+    _square_ring_spread,
+    _Stacked,
+    _stacked_medians,
+    _subsample_indices,
+    _window_offsets,
+)
+from .noise_model import _fit_mixture, _NoiseModel
+from .params import _FLOAT, ImpulseParams
+
+#: Candidates for the exact test are pixels whose residual to the cheap centre-including
+#: median, divided by this, passes the test: the centre-excluded residual is usually larger
+#: by only half an order-statistic spacing. On a NIQA frame this keeps 99.8 % of the seeds of
+#: an exact test of every pixel; the few dropped lie in mixed neighbourhoods (next to other
+#: pulses or edges), where the patch growth usually finds them.
+_PREFILTER_FRACTION = 0.6
+
+#: Seed test: the spread of the 8 detection samples may exceed the noise by this factor
+#: before it raises the residual variance (8 samples estimate a spread only roughly; a
+#: factor 2 is rarely reached on a smooth background, always on edges and screen corners).
+_SEED_SPREAD_TOLERANCE = 3.0
+
+#: Texture guard. Around a seed, a pixel of the annulus between Chebyshev distances
+#: ``_TEXTURE_INNER_PX`` and ``_TEXTURE_OUTER_PX`` is "busy" when its own residual to the
+#: fast detection median is at least ``_BUSY_RELATIVE`` of the seed's. A pulse (at most
+#: 5x5 px, so never reaching the annulus from any of its pixels) leaves only the noise's
+#: tail busy; a track (1-2 px wide) adds the two places where it crosses the annulus. A line
+#: pattern, mesh or grid (periodic structure that continues beyond the window) makes a
+#: large part of it busy, with residuals of both signs. A seed whose annulus is busier
+#: than ``_TEXTURE_BUSY_FRACTION`` is texture, not a pulse. Relative to the seed, not to
+#: the noise model: on a frame filled with texture the fitted noise is inflated by it.
+#: Measured on line patterns and meshes (2.2-5.3 px period, 60 % modulation) against
+#: pulses of every shape (benchmarks/eval_impulse_independent.py): the 1st percentile of
+#: texture seeds is at 0.22, the 99th of pulse seeds at 0.14 (tracks 0.24).
+#: Weak pulses (4-6 sigma) and texture overlap in that relative measure; the annulus is
+#: then also compared with the noise model: more than ``_TEXTURE_NOISY_FRACTION`` of it
+#: beyond ``_BUSY_SIGMAS`` noise sigmas is texture too (noise alone: 0.3 %).
+_BUSY_RELATIVE = 0.4
+_TEXTURE_INNER_PX = 4
+_TEXTURE_OUTER_PX = 6
+_TEXTURE_BUSY_FRACTION = 0.2
+_BUSY_SIGMAS = 3.0
+_TEXTURE_NOISY_FRACTION = 0.35
+
+#: EM samples are left out where the image is this many times busier than usual (texture).
+#: A tighter cut (at the median) also removed noise-only samples selectively and biased
+#: the fitted gain by up to 20 %.
+_BUSY_SAMPLE_FACTOR = 1.5
+
+
+def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_counting: bool,
+                   polarity: int, valid: np.ndarray | None = None, circular: bool = False,
+                   value_range: float | None = None, residual_weight: np.ndarray | None = None,
+                   in_place: bool = False, fit_region: np.ndarray | None = None):
+    """Detect and replace pulses in one float32 channel (``in_place``: in ``x`` itself).
+
+    ``fit_region`` (bool, optional): the noise model is fitted on these pixels only (and
+    within ``valid``); detection still covers every valid pixel.
+
+    ``residual_weight`` (constant-variance channels): residuals are multiplied by it before
+    the Gaussian model is fitted and applied, so that a channel whose noise is known to
+    scale as 1/weight gets a constant variance (H and S: see :func:`_remove_hsv`).
+
+    Only the first pass looks at the whole image. A later pass can only find pulses where
+    the previous one changed a detection median, so it re-tests just the pixels within the
+    detection window of the pixels replaced before (the same result as a full pass).
+
+    Returns (cleaned float32 channel, mask, model of the first pass or None). Pulse pixels
+    get the median of their non-pulse neighbours; others are untouched.
+    """
+    if not (in_place and x.dtype == _FLOAT and x.flags.c_contiguous):
+        x = np.array(x, dtype=_FLOAT, copy=True)
+    h, w = x.shape
+    mask_total = np.zeros((h, w), bool)
+    if passes == 0:
+        return x, mask_total, None
+    if value_range is None:
+        value_range = float(x.max() - x.min())
+    value_range = max(value_range, 1e-12)
+    components = _detection_components(x, params.window_px)
+    fast_residual = _fast_residual(components, (h, w), circular, residual_weight)
+    fit_valid = valid if fit_region is None else (fit_region if valid is None else valid & fit_region)
+    pick = _flat_area_sample(components, fit_valid, params.em_samples, photon_counting, x, fast_residual)
+    if pick.size < 16 and fit_region is not None:  # too few: fit on every valid pixel
+        pick = _flat_area_sample(components, valid, params.em_samples, photon_counting, x, fast_residual)
+    if pick.size < 16:
+        return x, mask_total, None
+    d_fit, m_fit = _exact_residual(x, *np.divmod(pick, w), params.window_px, circular, residual_weight)
+    # Dark spots are sought in frames that still hold bright ones (direct hits): a dark-only
+    # mixture would take those for noise and inflate its variance, so the fit is two-sided.
+    model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, polarity=max(polarity, 0),
+                         value_range=value_range, iterations=params.em_iterations)
+    if polarity < 0:
+        model.polarity, model.pulse_density = -1, 1.0 / value_range
+    del d_fit, m_fit, pick
+    if photon_counting:
+        model.min_contrast = float(params.min_contrast)
+    valid_flat = None if valid is None else valid.ravel()
+    scratch = np.zeros((h, w), np.uint8)  # 1: pulse of this pass, 2: ring under test
+    near_scratch = np.zeros((h, w), np.uint8)  # within 2 px of a pulse (growth's texture guard)
+    reach = 1 if params.window_px == 3 else 2
+    to_check = None
+    for _ in range(passes):
+        if to_check is None:
+            candidates = _prefilter(components, model, params, fast_residual)
+            del components
+        else:
+            candidates = to_check
+        if valid_flat is not None:
+            candidates = candidates[valid_flat[candidates]]
+        seeds = _exact_test(x, candidates, model, params, circular, residual_weight)
+        seeds = seeds[~_in_texture(fast_residual, seeds, x, model)]
+        pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch,
+                               fast_residual, near_scratch)
+        if pulses.size == 0:
+            break
+        rows, cols = np.divmod(pulses, w)
+        # Replacement values come from outside the detected patches. (Leaving out their 1-px
+        # rim as well changed the residual pulse energy by 1 % and doubled the damage of
+        # false alarms on thin anatomy: measured, not kept.)
+        scratch.ravel()[pulses] = 1
+        repl = _masked_median_at(x, scratch, rows, cols)
+        scratch.ravel()[pulses] = 0
+        keep = np.isfinite(repl)
+        x.ravel()[pulses[keep]] = repl[keep].astype(_FLOAT)
+        fast_residual.flat[fast_residual.index(pulses)] = 0.0  # replaced: no longer busy (texture guard)
+        mask_total.ravel()[pulses] = True
+        dr, dc = _window_offsets(2 * reach + 1)
+        to_check = _sorted_unique(_flat_indices(rows, cols, dr, dc, (h, w)))
+    return x, mask_total, model
+
+
+def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, count: int,
+                      photon_counting: bool, x: np.ndarray, fast_residual: "_Stacked") -> np.ndarray:
+    """Flat indices of about ``count`` pixels in the flattest half of the image.
+
+    Texture and edges inflate the residual and would bias the noise fit
+    (docs/algorithms/impulse.md, section 'Pitfalls'); the fit therefore uses pixels whose local slope of the detection median (between
+    the direct neighbours, whose medians use other samples than the pixel's own) is at most
+    the median slope, the slope being divided by sqrt(m) for photon-counting channels so
+    that bright areas are not excluded just for their larger noise. A median flattens fine
+    texture (line patterns, meshes), so its slope does not see it; the pixels must also be
+    at most ``_BUSY_SAMPLE_FACTOR`` times as busy as the median pixel (a mean of 8
+    absolute noise residuals rarely is; texture far more), busy meaning the mean absolute residual to the
+    fast median of the 8 pixels three steps away (scaled like the slope; those pixels and
+    their median samples all have an odd offset, so they share no pixel with the residual
+    the fit uses, and selecting on them does not bias the fitted noise). Regular subsample
+    (deterministic).
+    """
+    shape = h, w = x.shape
+    candidates = _subsample_indices(h * w, 2 * count)
+    if valid is not None:
+        candidates = candidates[valid.ravel()[candidates]]
+    if candidates.size < 32:
+        return candidates
+    rows, cols = np.divmod(candidates, w)
+    median = _stacked_medians(components, shape)
+    around = median.around(rows, cols, np.array([0, 0, 1, -1]), np.array([1, -1, 0, 0]))
+    del median
+    slope = np.abs(around[:, 0] - around[:, 1]) + np.abs(around[:, 2] - around[:, 3])
+    ring_dr = np.array([-3, -3, -3, 0, 0, 3, 3, 3])
+    ring_dc = np.array([-3, 0, 3, -3, 3, -3, 0, 3])
+    busy = np.abs(fast_residual.around(rows, cols, ring_dr, ring_dc)).mean(axis=1)
+    if photon_counting:
+        scale = np.sqrt(np.abs(x.ravel()[candidates] - fast_residual.at(candidates)) + 1.0)
+        slope = slope / scale
+        busy = busy / scale
+    return candidates[(slope <= np.median(slope)) & (busy <= _BUSY_SAMPLE_FACTOR * np.median(busy))]
+
+
+def _exact_residual(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int,
+                    circular: bool, residual_weight: np.ndarray | None):
+    """Residual to the centre-excluded detection median, and that median (float64)."""
+    med = _ring_median_at(x, rows, cols, size_px)
+    d = x[rows, cols].astype(np.float64) - med
+    if circular:
+        d -= np.rint(d)  # into [-0.5, 0.5]: the short way round the hue circle
+    if residual_weight is not None:
+        d *= residual_weight[rows, cols]
+    return d, med
+
+
+def _fast_residual(components: list[_Component], shape, circular: bool,
+                   residual_weight: np.ndarray | None) -> _Stacked:
+    """Residual of every pixel to its fast detection median (float32, weighted like the test)."""
+    residual = _Stacked(shape, components[0].step)
+    for comp in components:
+        d = residual.part(comp)
+        np.subtract(comp.values, comp.median, out=d)
+        if circular:
+            d -= np.rint(d)
+        if residual_weight is not None:
+            d *= residual_weight[comp.r0::comp.step, comp.c0::comp.step]
+    return residual
+
+
+def _prefilter(components: list[_Component], model: _NoiseModel, params: ImpulseParams,
+               residual: _Stacked) -> np.ndarray:
+    """Flat indices of pulse candidates from the residuals to the cheap centre-including medians.
+
+    Nearly a superset of the pulses of the exact test (see ``_PREFILTER_FRACTION``): the
+    residual to the fast median must exceed
+    ``_PREFILTER_FRACTION`` of the smallest threshold the exact test can use at that level
+    (the log term of the threshold is bounded by its value at the largest variance), so the
+    full-image work is a handful of array operations without logarithms.
+    """
+    width = residual.width
+    const = model.log_odds_constant(params.posterior_threshold, model.pulse_rate)
+    fraction2 = _PREFILTER_FRACTION ** 2
+    if model.a > 0:
+        m_max = max(float(comp.median.max()) for comp in components)
+        factor = const - math.log(max(model.a * m_max + model.b, model.var_floor))
+    else:
+        s2 = max(model.b, model.var_floor)
+        factor = const - math.log(s2)
+    found = []
+    for comp in components:
+        d = residual.part(comp).copy()
+        if factor <= 0:  # degenerate fit: test every pixel exactly
+            candidates = d * model.polarity > 0 if model.polarity else d != 0
+        elif model.a > 0:
+            s2 = np.multiply(comp.median, _FLOAT(model.a * fraction2 * factor), dtype=_FLOAT)
+            s2 += _FLOAT(model.b * fraction2 * factor)
+            np.maximum(s2, _FLOAT(model.var_floor * fraction2 * factor), out=s2)
+            candidates = d * _FLOAT(model.polarity) > 0 if model.polarity else None
+            d *= d
+            candidates = d > s2 if candidates is None else candidates & (d > s2)
+        else:
+            threshold = _FLOAT(_PREFILTER_FRACTION * math.sqrt(s2 * factor))
+            candidates = d * _FLOAT(model.polarity) > threshold if model.polarity else np.abs(d) > threshold
+        found.append(comp.to_flat(np.flatnonzero(candidates), width))
+    return np.concatenate(found)
+
+
+def _in_texture(residual: _Stacked, pixels: np.ndarray, x: np.ndarray, model: "_NoiseModel",
+                reference: np.ndarray | None = None, ignore: np.ndarray | None = None,
+                chunk: int = 65536) -> np.ndarray:
+    """True where the annulus around a pixel is busier than a pulse's can be (texture guard).
+
+    ``residual``: the fast-median residual map of :func:`_prefilter`; ``pixels``: flat
+    indices; ``reference``: the residual busy pixels are compared with (default: each
+    pixel's own to the fast median; a patch rim uses its excess over its background),
+    never less than ``_BUSY_SIGMAS`` noise sigmas; ``x`` and ``model``: the
+    channel and its noise model (for the noise-relative count); ``ignore`` (flat uint8,
+    optional): pixels left out of the annulus (next to detected pulses, whose fast median
+    the pulse pulls up). Fewer than a third of the annulus left: not texture.
+    """
+    out = np.zeros(pixels.size, bool)
+    if pixels.size == 0:
+        return out
+    dr, dc = _window_offsets(2 * _TEXTURE_OUTER_PX + 1)
+    on = np.maximum(np.abs(dr), np.abs(dc)) >= _TEXTURE_INNER_PX
+    dr, dc = dr[on], dc[on]
+    flat_x = x.ravel()
+
+    for start in range(0, pixels.size, chunk):
+        part = pixels[start:start + chunk]
+        rows, cols = np.divmod(part, x.shape[1])
+        own_residual = residual.at(part)
+        own = own_residual if reference is None else reference[start:start + chunk]
+        if model.a > 0:
+            own_noise2 = model.variance(flat_x[part] - own_residual)
+        else:
+            own_noise2 = max(model.b, model.var_floor)
+        # At least the noise-relative level: a weak pulse or rim is not texture for noise.
+        level = np.maximum(np.abs(own) * _BUSY_RELATIVE, _BUSY_SIGMAS * np.sqrt(own_noise2)).astype(_FLOAT)
+        idx = _flat_indices(rows, cols, dr, dc, x.shape)
+        around_signed = residual.around(rows, cols, dr, dc)
+        around = np.abs(around_signed)
+        counted = np.ones(idx.shape, bool) if ignore is None else ignore[idx] == 0
+        n_counted = np.count_nonzero(counted, axis=1)
+        busy = np.count_nonzero((around > level[:, None]) & counted, axis=1) > _TEXTURE_BUSY_FRACTION * n_counted
+        if model.a > 0:  # photon counting: variance at the fast median x - residual
+            noise2 = model.variance(flat_x[idx] - around_signed).astype(_FLOAT)
+        else:
+            noise2 = _FLOAT(max(model.b, model.var_floor))
+        around *= around
+        noisy = (around > _FLOAT(_BUSY_SIGMAS ** 2) * noise2) & counted
+        busy |= np.count_nonzero(noisy, axis=1) > _TEXTURE_NOISY_FRACTION * n_counted
+        out[start:start + chunk] = busy & (n_counted * 3 >= dr.size)
+    return out
+
+
+def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, params: ImpulseParams,
+                circular: bool, residual_weight: np.ndarray | None) -> np.ndarray:
+    """The candidates (flat indices) that are pulses by the posterior test."""
+    if candidates.size == 0:
+        return candidates
+    rows, cols = np.divmod(candidates, x.shape[1])
+    d, med = _exact_residual(x, rows, cols, params.window_px, circular, None)
+    spread = _square_ring_spread(x, rows, cols, params.max_patch_px)
+    if residual_weight is not None:
+        weight = residual_weight[rows, cols]
+        d *= weight
+        spread *= weight
+    # Structure guard: where the background around the candidate spreads far more than the
+    # noise (an edge, the corner of the screen), the residual is not Gaussian around the
+    # median; the variance is then at least (spread / _SEED_SPREAD_TOLERANCE)^2. The spread
+    # is taken just outside the largest patch, so the patch itself never inflates it.
+    spread /= _SEED_SPREAD_TOLERANCE
+    return candidates[model.is_pulse(d, med, params.posterior_threshold, min_variance=spread * spread)]
+
+
+def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: ImpulseParams,
+                  valid_flat: np.ndarray | None, circular: bool,
+                  residual_weight: np.ndarray | None, scratch: np.ndarray,
+                  fast_residual: _Stacked, near_scratch: np.ndarray) -> np.ndarray:
+    """Add neighbours of detected pulses that are pulses against their background.
+
+    Each round tests the ring of pixels next to the pulses against the median of the
+    pixels of a 7x7 (or larger) window that are neither pulses nor in the ring, so the
+    still undetected core of a large patch does not pull the background up; a patch is
+    peeled from its rim inward. The window is large enough to surround the pixel on an edge
+    (a 3x3 window minus the patch would hold only pixels on one side). Ring pixels get the
+    prior pulse probability ``params.neighbour_prior``: pulses come as patches and tracks,
+    so their fainter rims are accepted at a lower significance.
+
+    Grown pixels also pass the texture guard (:func:`_in_texture`), relative to their
+    excess over the background and ignoring pixels within 2 px of the pulses found so far.
+
+    ``seeds`` and the result are flat indices; ``scratch`` and ``near_scratch`` (uint8,
+    zero) mark pulses and ring, and the neighbourhood of pulses; both are zero on return.
+    """
+    if seeds.size == 0:
+        return seeds
+    h, w = x.shape
+    marks = scratch.ravel()
+    prior = max(params.neighbour_prior, model.pulse_rate)
+    dr8 = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+    dc8 = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
+    pulses = seeds
+    marks[pulses] = 1
+    near_flat = near_scratch.ravel()
+    dr5, dc5 = _window_offsets(5)
+    near_marked = [_flat_indices(*np.divmod(seeds, w), dr5, dc5, (h, w))]
+    near_flat[near_marked[0]] = 1
+    for _ in range(params.max_patch_px):
+        rows, cols = np.divmod(pulses, w)
+        ring = _sorted_unique(_flat_indices(rows, cols, dr8, dc8, (h, w)))
+        ring = ring[marks[ring] == 0]
+        if valid_flat is not None:
+            ring = ring[valid_flat[ring]]
+        if ring.size == 0:
+            break
+        marks[ring] = 2
+        ring_rows, ring_cols = np.divmod(ring, w)
+        med, spread = _masked_median_at(x, scratch, ring_rows, ring_cols, smallest_px=7,
+                                        symmetric=True, with_spread=True)
+        d = x.ravel()[ring].astype(np.float64) - med
+        if circular:
+            d -= np.rint(d)
+        if residual_weight is not None:
+            weight = residual_weight.ravel()[ring]
+            d *= weight
+            spread *= weight
+        ok = np.isfinite(d)
+        new = np.zeros(ring.shape, bool)
+        new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold, prior=prior,
+                                 min_variance=spread[ok] ** 2)
+        marks[ring] = 0
+        if new.any():
+            # Texture guard as for seeds, relative to the pixel's excess over its background.
+            grown = ring[new]
+            texture = _in_texture(fast_residual, grown, x, model, d[new], near_flat)
+            new[np.flatnonzero(new)[texture]] = False
+        if not new.any():
+            break
+        marks[ring[new]] = 1
+        near_marked.append(_flat_indices(*np.divmod(ring[new], w), dr5, dc5, (h, w)))
+        near_flat[near_marked[-1]] = 1
+        pulses = np.concatenate([pulses, ring[new]])
+    marks[pulses] = 0
+    for marked in near_marked:
+        near_flat[marked] = 0
+    return pulses

@@ -1,0 +1,276 @@
+"""Pixel neighbourhoods of the impulse stage: polyphase components, ring medians and
+spreads, masked window medians, flat-index helpers, and the robust sigma they share."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .params import _FLOAT
+
+#: Replacement / re-test windows (side in px) and the least number of non-pulse pixels each
+#: must hold to be used; the first window that qualifies is used.
+_REPLACEMENT_WINDOWS_PX = (3, 5, 7, 9)
+_REPLACEMENT_MIN_GOOD = (5, 8, 12, 12)
+
+#: Standard deviation of a Gaussian per unit of its interquartile range (1 / 1.349) and per
+#: unit of its median absolute deviation (1.4826): the robust sigmas of this stage.
+IQR_TO_SIGMA = 1.0 / 1.349
+MAD_TO_SIGMA = 1.4826
+
+
+def robust_sigma(residuals: np.ndarray) -> float:
+    """Noise sigma of residuals centred on zero: 1.4826 x their median absolute value."""
+    return MAD_TO_SIGMA * float(np.median(np.abs(residuals)))
+
+
+@dataclass
+class _Component:
+    """A polyphase component of a channel (rows r0::step, cols c0::step) and its 3x3 median."""
+
+    r0: int
+    c0: int
+    step: int
+    values: np.ndarray
+    median: np.ndarray
+
+    def to_flat(self, flat_in_component: np.ndarray, width: int) -> np.ndarray:
+        """Flat indices in the full image of flat indices in this component."""
+        rows, cols = np.divmod(flat_in_component, self.values.shape[1])
+        return (self.r0 + self.step * rows) * width + (self.c0 + self.step * cols)
+
+
+def _detection_components(x: np.ndarray, size_px: int) -> list[_Component]:
+    """The components the fast detection median works on, each with its median (float32).
+
+    ``size_px`` 3: the whole image and its 3x3 median. 5: the *sparse* 5x5 median over the
+    centre and the eight pixels two steps away (rows and columns -2, 0, +2), computed as the
+    3x3 median of each of the four polyphase components: a patch of up to 3x3 px around the
+    centre holds only one of its nine samples, so the median stays on the background, at the
+    cost of one 3x3 median. Both include the centre (cv2.medianBlur), replicated border.
+    """
+    import cv2
+
+    if size_px == 3:
+        values = np.ascontiguousarray(x, dtype=_FLOAT)
+        return [_Component(0, 0, 1, values, cv2.medianBlur(values, 3))]
+    components = []
+    for r0 in (0, 1):
+        for c0 in (0, 1):
+            values = np.ascontiguousarray(x[r0::2, c0::2], dtype=_FLOAT)
+            components.append(_Component(r0, c0, 2, values, cv2.medianBlur(values, 3)))
+    return components
+
+
+#: Batcher's odd-even merge sort of 8 values (19 compare-exchanges), used column-wise.
+_SORT8_NETWORK = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (1, 2), (5, 6),
+                  (0, 4), (3, 7), (1, 5), (2, 6), (1, 4), (3, 6), (2, 4), (3, 5), (3, 4))
+
+
+def _ring_median_at(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int,
+                    with_spread: bool = False):
+    """Median of the 8 detection samples around each pixel, centre excluded (float64).
+
+    The samples are those of :func:`_detection_components` without the centre: the 8 neighbours
+    (``size_px`` 3) or the 8 pixels two steps away (5). Borders are replicated. The median
+    of 8 is the mean of the 4th and 5th values, found by a sorting network over the columns.
+
+    ``with_spread``: also return the spread of the 8 samples, (v6 + v7 - v2 - v3) / 2 of the
+    sorted values over 1.325, its expected value for 8 Gaussian samples of unit deviation
+    (float64): about the noise on a smooth background, far more on edges and corners.
+    """
+    step = 1 if size_px == 3 else 2
+    dr = np.array([-step, -step, -step, 0, 0, step, step, step])
+    dc = np.array([-step, 0, step, -step, step, -step, 0, step])
+    flat = _flat_indices(rows, cols, dr, dc, x.shape)
+    x_flat = np.ascontiguousarray(x).ravel()
+    v = [x_flat[flat[:, k]] for k in range(8)]
+    for i, j in _SORT8_NETWORK:
+        low = np.minimum(v[i], v[j])
+        v[j] = np.maximum(v[i], v[j])
+        v[i] = low
+    median = 0.5 * (v[3].astype(np.float64) + v[4])
+    if not with_spread:
+        return median
+    spread = ((v[5].astype(np.float64) + v[6]) - (v[1].astype(np.float64) + v[2])) / (2.0 * 1.325)
+    return median, spread
+
+
+def _square_ring_spread(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, radius_px: int) -> np.ndarray:
+    """Curvature-and-noise spread of the ring at Chebyshev distance ``radius_px`` (float64).
+
+    The ``8 radius_px`` pixels of the square ring (border replicated) form ``4 radius_px``
+    point-symmetric pairs; sqrt(2) (q3 - q1)/1.349 of the pair means is the pixel noise on a
+    smooth background or a linear ramp, far more at the shoulder of a sharp edge or at a
+    corner of the screen.
+    """
+    r = int(radius_px)
+    dr, dc = _window_offsets(2 * r + 1)
+    on_ring = np.maximum(np.abs(dr), np.abs(dc)) == r
+    flat = _flat_indices(rows, cols, dr[on_ring], dc[on_ring], x.shape)
+    vals = np.ascontiguousarray(x).ravel()[flat].astype(np.float64)
+    half = vals.shape[1] // 2
+    # Means of point-symmetric pairs (row-major ring: the mirror of k is n - 1 - k): on a
+    # linear ramp each equals the centre's value, so only curvature and noise spread them.
+    pairs = 0.5 * (vals[:, :half] + vals[:, ::-1][:, :half])
+    pairs.sort(axis=1)
+    n = half
+    return math.sqrt(2.0) * IQR_TO_SIGMA * (pairs[:, (3 * (n - 1)) // 4] - pairs[:, (n - 1) // 4])
+
+
+def _sorted_unique(indices: np.ndarray) -> np.ndarray:
+    """Sorted distinct values of an integer array (same result as ``np.unique``).
+
+    numpy 2's hash-based ``np.unique`` took about 15x longer than sort-and-compare on the
+    neighbour-index arrays of a 24-megapixel frame.
+    """
+    values = np.sort(indices, axis=None)
+    if values.size == 0:
+        return values
+    keep = np.empty(values.size, bool)
+    keep[0] = True
+    np.not_equal(values[1:], values[:-1], out=keep[1:])
+    return values[keep]
+
+
+def _flat_indices(rows: np.ndarray, cols: np.ndarray, dr: np.ndarray, dc: np.ndarray, shape) -> np.ndarray:
+    """Flat indices of pixels (rows + dr, cols + dc), shape (N, K), borders replicated."""
+    h, w = shape
+    reach = int(max(np.abs(dr).max(), np.abs(dc).max()))
+    flat = (rows.astype(np.intp) * w + cols)[:, None] + (dr * w + dc)[None, :]
+    near_border = (rows < reach) | (rows >= h - reach) | (cols < reach) | (cols >= w - reach)
+    if near_border.any():
+        rr = np.clip(rows[near_border, None] + dr[None, :], 0, h - 1)
+        cc = np.clip(cols[near_border, None] + dc[None, :], 0, w - 1)
+        flat[near_border] = rr * w + cc
+    return flat
+
+
+def _window_offsets(size_px: int) -> tuple[np.ndarray, np.ndarray]:
+    r = size_px // 2
+    dr, dc = np.mgrid[-r:r + 1, -r:r + 1]
+    return dr.ravel(), dc.ravel()
+
+
+def _window_flat_indices(rows: np.ndarray, cols: np.ndarray, size_px: int, shape) -> np.ndarray:
+    """Flat indices of the ``size_px`` x ``size_px`` window around each pixel (border replicated)."""
+    dr, dc = _window_offsets(size_px)
+    return _flat_indices(rows, cols, dr, dc, shape)
+
+
+def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                      smallest_px: int = 3, symmetric: bool = False, with_spread: bool = False):
+    """Median of the non-excluded pixels around each (row, col), float64.
+
+    Tries windows of 3 (or ``smallest_px``), 5, 7 and 9 px and uses, per pixel, the smallest
+    with enough non-excluded pixels. Borders are replicated. Returns NaN where even the
+    largest window holds no usable pixel. Hue must already be rotated so that the values do
+    not straddle the wrap (the median is then the linear one).
+
+    ``symmetric``: a pixel is also left out when its mirror image through the centre is
+    excluded. The remaining set is point-symmetric, so on a locally linear ramp (a blurred
+    edge) its median is the centre's expected value; excluding the pulses on one side only
+    would pull the median towards the other side, and patch growth would then creep along
+    the ramp, pixel by pixel, down the gradient.
+
+    ``with_spread``: also return the spread of those pixels, (q3 - q1)/1.349 (the standard
+    deviation for Gaussian noise; larger where the window holds structure, float64).
+    """
+    x_flat = np.ascontiguousarray(x).ravel()
+    excluded_flat = np.ascontiguousarray(excluded).ravel()
+    out = np.full(rows.shape, np.nan)
+    spread = np.full(rows.shape, np.nan) if with_spread else None
+    todo = np.arange(rows.size)
+    for size, min_good in zip(_REPLACEMENT_WINDOWS_PX, _REPLACEMENT_MIN_GOOD, strict=True):
+        if todo.size == 0:
+            break
+        if size < smallest_px:
+            continue
+        flat = _window_flat_indices(rows[todo], cols[todo], size, x.shape)
+        vals = x_flat[flat].astype(_FLOAT, copy=False)
+        bad = excluded_flat[flat] != 0
+        if symmetric:
+            bad |= bad[:, ::-1]  # row-major window: the mirror of offset k is offset n - 1 - k
+        good_count = size * size - np.count_nonzero(bad, axis=1)
+        vals[bad] = np.inf
+        vals.sort(axis=1)
+        enough = good_count >= (min_good if size != _REPLACEMENT_WINDOWS_PX[-1] else 1)
+        idx = np.nonzero(enough)[0]
+        if idx.size:
+            n = good_count[idx]
+            lo = np.take_along_axis(vals[idx], ((n - 1) // 2)[:, None], axis=1)[:, 0]
+            hi = np.take_along_axis(vals[idx], (n // 2)[:, None], axis=1)[:, 0]
+            out[todo[idx]] = 0.5 * (lo.astype(np.float64) + hi)
+            if with_spread:
+                q1 = np.take_along_axis(vals[idx], ((n - 1) // 4)[:, None], axis=1)[:, 0]
+                q3 = np.take_along_axis(vals[idx], ((3 * (n - 1)) // 4)[:, None], axis=1)[:, 0]
+                spread[todo[idx]] = IQR_TO_SIGMA * (q3.astype(np.float64) - q1)
+        todo = todo[~enough]
+    return (out, spread) if with_spread else out
+
+
+class _Stacked:
+    """A per-pixel map stored component by component: (components, h/step, w/step), float32.
+
+    The fast detection works on polyphase components; keeping its maps in that layout
+    avoids strided writes of whole frames. ``at`` reads the values at full-image flat indices.
+    """
+
+    def __init__(self, shape, step: int):
+        self._height, self.width = shape
+        self.step = step
+        self.rows, self.cols = -(-shape[0] // step), -(-shape[1] // step)
+        self.data = np.zeros((step * step, self.rows, self.cols), _FLOAT)
+        self.flat = self.data.reshape(-1)
+
+    def part(self, comp: "_Component") -> np.ndarray:
+        """The (writable) block of one component, shaped like its values."""
+        k = comp.r0 * self.step + comp.c0
+        return self.data[k, :comp.values.shape[0], :comp.values.shape[1]]
+
+    def index(self, flat: np.ndarray) -> np.ndarray:
+        if self.step == 1:
+            return flat
+        rows, cols = np.divmod(flat, self.width)
+        return self._index(rows, cols)
+
+    def _index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        if self.step == 1:
+            return rows * self.width + cols
+        out = (rows & 1) * (2 * self.rows * self.cols)
+        out += (cols & 1) * (self.rows * self.cols)
+        out += (rows >> 1) * self.cols
+        out += cols >> 1
+        return out
+
+    def at(self, flat: np.ndarray) -> np.ndarray:
+        return self.flat[self.index(flat)]
+
+    def around(self, rows: np.ndarray, cols: np.ndarray, dr: np.ndarray, dc: np.ndarray) -> np.ndarray:
+        """Values at (rows + dr, cols + dc), shape (N, K), borders replicated."""
+        reach = int(max(np.abs(dr).max(), np.abs(dc).max()))
+        rr = rows.astype(np.intp)[:, None] + dr[None, :]
+        cc = cols.astype(np.intp)[:, None] + dc[None, :]
+        near_border = ((rows < reach) | (rows >= self._height - reach)
+                       | (cols < reach) | (cols >= self.width - reach))
+        if near_border.any():
+            rr[near_border] = np.clip(rr[near_border], 0, self._height - 1)
+            cc[near_border] = np.clip(cc[near_border], 0, self.width - 1)
+        return self.flat[self._index(rr, cc)]
+
+
+def _stacked_medians(components: list[_Component], shape) -> _Stacked:
+    out = _Stacked(shape, components[0].step)
+    for comp in components:
+        out.part(comp)[...] = comp.median
+    return out
+
+
+def _subsample_indices(n: int, count: int) -> np.ndarray:
+    """A regular (deterministic) subsample of ``count`` flat indices out of ``n``."""
+    if n <= count:
+        return np.arange(n)
+    step = n / count
+    return (np.arange(count) * step).astype(np.int64)

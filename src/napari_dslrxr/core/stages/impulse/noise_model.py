@@ -1,0 +1,166 @@
+"""Noise model of the impulse stage: the Gaussian + uniform-pulse mixture of the residual,
+fitted by expectation-maximisation, and the count variance derived from it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .neighbourhoods import robust_sigma
+from .params import _FLOAT, MEDIAN_RESIDUAL_VARIANCE_FACTOR, ImpulseParams
+
+#: Percentage of the EM samples, the darkest, whose residual variance is the floor of the
+#: photon-counting variance model (the read-noise term; see ``_dark_end``).
+_DARK_END_PERCENT = 1.0
+
+
+@dataclass
+class _NoiseModel:
+    """Residual mixture of one channel: s^2 = a*m + b, pulse rate P, pulse density u."""
+
+    a: float
+    b: float
+    pulse_rate: float
+    pulse_density: float
+    polarity: int  # +1 bright pulses only, -1 dark only, 0 either sign
+    var_floor: float
+    min_contrast: float = 0.0
+    #: Photon-counting channels: median level of the darkest fit samples (nan if unknown).
+    dark_level: float = float("nan")
+
+    def variance(self, m: np.ndarray) -> np.ndarray:
+        return np.maximum(self.a * m + self.b, self.var_floor)
+
+    def log_odds_constant(self, posterior_threshold: float, rate: float) -> float:
+        """2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi): the threshold is s^2 (this - ln s^2)."""
+        return (2.0 * math.log((1.0 - rate) / (rate * self.pulse_density))
+                + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
+                - math.log(2.0 * math.pi))
+
+    def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float,
+                 prior: float | None = None, min_variance: np.ndarray | None = None) -> np.ndarray:
+        """Posterior pulse probability > threshold, vectorised (float32 inputs allowed).
+
+        r > t  <=>  d^2/s^2 > 2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi s^2),
+        with ``P`` the fitted pulse rate unless a ``prior`` is given, and ``s^2`` at least
+        ``min_variance`` where that is given.
+        """
+        s2 = self.variance(m)
+        if min_variance is not None:
+            s2 = np.maximum(s2, min_variance)
+        const = self.log_odds_constant(posterior_threshold, self.pulse_rate if prior is None else prior)
+        limit = s2 * (const - np.log(s2))
+        pulse = (d * d > limit) & (limit > 0) | (limit <= 0)
+        if self.polarity > 0:
+            pulse &= d > 0
+        elif self.polarity < 0:
+            pulse &= d < 0
+        else:
+            pulse &= d != 0
+        if self.min_contrast > 0:
+            pulse &= np.abs(d) > self.min_contrast * np.abs(m)
+        return pulse
+
+
+def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, polarity: int,
+                 value_range: float, iterations: int) -> _NoiseModel:
+    """Fit a, b and P by EM on residuals ``d`` and medians ``m`` (1-D float64 subsample)."""
+    density = 1.0 / value_range if polarity else 1.0 / (2.0 * value_range)
+    var_floor = max((1e-4 * value_range) ** 2, 1e-12)
+    mad = robust_sigma(d)
+    if photon_counting:
+        level = np.maximum(m - float(np.percentile(m, 0.5)), 0.0) + 1.0
+        scale = robust_sigma(d / np.sqrt(level))
+        a, b = max(scale * scale, 0.0), max(var_floor, 0.0)
+        dark_level, dark_variance = _dark_end(d, m)
+        var_floor = max(var_floor, dark_variance)
+    else:
+        a, b = 0.0, max(mad * mad, var_floor)
+        dark_level = float("nan")
+    model = _NoiseModel(a, b, 0.01, density, polarity, var_floor)
+    d2 = d * d
+    for _ in range(iterations):
+        s2 = model.variance(m)
+        log_gauss = -0.5 * d2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
+        pulse_log = math.log(model.pulse_rate * density)
+        if polarity:
+            pulse_log = np.where(d * polarity > 0, pulse_log, -np.inf)
+        # responsibilities r = P u / (P u + (1 - P) N), via the log-odds for stability
+        log_odds = pulse_log - (math.log(1.0 - model.pulse_rate) + log_gauss)
+        resp = 0.5 * (1.0 + np.tanh(0.5 * np.clip(log_odds, -60, 60)))
+        new_rate = float(np.clip(resp.mean(), 1e-7, 0.5))
+        weight = 1.0 - resp
+        if photon_counting:
+            # Weighted least squares of d^2 on (m, 1) with weights (1 - r)/s^4
+            # (Var[d^2] = 2 s^4 under the Gaussian), the Gaussian-variance M-step.
+            wls = weight / (s2 * s2)
+            sxx = np.sum(wls * m * m); sx = np.sum(wls * m); s1 = np.sum(wls)
+            sxy = np.sum(wls * m * d2); sy = np.sum(wls * d2)
+            det = sxx * s1 - sx * sx
+            a_new = (sxy * s1 - sx * sy) / det if det > 0 else 0.0
+            if a_new <= 0:
+                a_new, b_new = 0.0, sy / s1
+            else:
+                b_new = (sxx * sy - sx * sxy) / det
+        else:
+            a_new, b_new = 0.0, float(np.sum(weight * d2) / max(np.sum(weight), 1e-30))
+        change = abs(a_new - model.a) / max(model.a, 1e-30) + abs(b_new - model.b) / max(abs(model.b), var_floor)
+        model = _NoiseModel(float(a_new), float(b_new), new_rate, density, polarity, var_floor)
+        if change < 1e-4:
+            break
+    model.dark_level = dark_level
+    return model
+
+
+def _dark_end(d: np.ndarray, m: np.ndarray) -> tuple[float, float]:
+    """Level (median ``m``) and robust residual variance of the darkest samples.
+
+    The darkest ``_DARK_END_PERCENT`` of the samples are used.
+
+    The photon-counting variance ``G (m - o) + sigma_e^2`` never falls below the read-noise
+    term ``sigma_e^2``, but the straight line ``a m + b`` fitted to it crosses zero near the
+    offset ``o``; below the camera's black level plus a few counts (the dark surround of the
+    screen) it would promise a noise far below the real one and flag read noise as pulses.
+    Measured (1.4826 MAD, so pulses do not inflate it) where the image is darkest, it is the
+    floor of the variance model; on an image without dark parts it is the variance at its
+    darkest level and changes nothing above it. (nan, 0) when there are too few samples.
+    """
+    dark = m <= np.percentile(m, _DARK_END_PERCENT)
+    if np.count_nonzero(dark) < 50:
+        return float("nan"), 0.0
+    return float(np.median(m[dark])), robust_sigma(d[dark]) ** 2
+
+
+def _gain(model: _NoiseModel | None, params: ImpulseParams) -> float:
+    if model is None or model.a <= 0:
+        return float("nan")
+    return model.a / MEDIAN_RESIDUAL_VARIANCE_FACTOR[params.window_px]
+
+
+def _count_variance(values: np.ndarray, model: "_NoiseModel | None") -> np.ndarray:
+    """Noise variance of counts ``values`` (float32, new array) from V's fitted model.
+
+    ``max(a c + b, floor)``: the photon-counting line and its read-noise floor (in units of
+    the detection residual; only ratios of these variances are used). Below the darkest
+    level V was fitted on (the minimum channel of a saturated colour can lie far below it)
+    the line is not extrapolated (its intercept is poorly determined there); the variance
+    falls in proportion to the counts instead, Poisson without offset. Without a V model
+    (no V pass, or too small an image) plain Poisson, ``Var[c]`` proportional to ``c``.
+    """
+    out = np.maximum(values, _FLOAT(0.0), dtype=_FLOAT)
+    if model is None or model.a <= 0:
+        out += _FLOAT(1e-12)
+        return out
+    below = None
+    if math.isfinite(model.dark_level) and model.dark_level > 0:
+        below = out < _FLOAT(model.dark_level)
+        var_at_dark = max(model.a * model.dark_level + model.b, model.var_floor, 1e-12)
+        scaled_below = out[below] * _FLOAT(var_at_dark / model.dark_level)
+    out *= _FLOAT(model.a)
+    out += _FLOAT(model.b)
+    np.maximum(out, _FLOAT(max(model.var_floor, 1e-12)), out=out)
+    if below is not None:
+        out[below] = np.maximum(scaled_below, _FLOAT(1e-12))
+    return out
