@@ -48,13 +48,6 @@ def rng() -> np.random.Generator:
 @pytest.fixture(scope="session")
 def phantom_scene_text() -> str:
     """A simulator scene over the phantom thickness map ``thickness.tif`` beside it."""
-    return """[geometry]
-source_to_detector_mm = 1200.0
-source_to_object_mm = 1000.0
-pixel_pitch_mm = 0.1
-[object]
-thickness_mm = "thickness.tif"
-material = "aluminium"
-[source]
-kvp = 60
-"""
+    from scenes import PHANTOM_SCENE_TOML
+
+    return PHANTOM_SCENE_TOML

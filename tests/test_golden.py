@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scenes import PHANTOM_SCENE_TOML
+
 GOLDEN_FILE = Path(__file__).with_name("golden_hashes.json")
 REGENERATE = os.environ.get("DSLRXR_REGEN_GOLDEN") == "1"
 
@@ -50,16 +52,7 @@ FRAME_SHAPE = (192, 288)
 SOURCE_TO_OBJECT_MM = 1150.0
 SOURCE_TO_DETECTOR_MM = 1200.0
 
-SCENE = """[geometry]
-source_to_detector_mm = 1200.0
-source_to_object_mm = 1000.0
-pixel_pitch_mm = 0.1
-[object]
-thickness_mm = "thickness.tif"
-material = "aluminium"
-[source]
-kvp = 60
-"""
+SCENE = PHANTOM_SCENE_TOML
 
 
 def _dslrxr(*args: str | Path) -> None:

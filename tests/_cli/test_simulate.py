@@ -7,20 +7,12 @@ import json
 import numpy as np
 import tifffile
 
+from scenes import PHANTOM_SCENE_TOML
 from napari_dslrxr.cli import main
 from napari_dslrxr.core import io
 from napari_dslrxr.core.simulation.simulator import phantom_thickness_mm
 
-SCENE = """[geometry]
-source_to_detector_mm = 1200.0
-source_to_object_mm = 1000.0
-pixel_pitch_mm = 0.1
-[object]
-thickness_mm = "thickness.tif"
-material = "aluminium"
-[source]
-kvp = 60
-"""
+SCENE = PHANTOM_SCENE_TOML
 
 
 def _scene(tmp_path, size=96):

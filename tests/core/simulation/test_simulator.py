@@ -5,22 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from scenes import PHANTOM_SCENE_TOML
 from napari_dslrxr.core import io
 from napari_dslrxr.core.errors import InputError, ParameterError
 from napari_dslrxr.core.simulation.simulator import (ChainModel, effective_attenuation_per_mm, load_scene,
                                           parse_effect_option, parse_scene, phantom_thickness_mm,
                                           simulate_recording)
 
-SCENE = """[geometry]
-source_to_detector_mm = 1200.0
-source_to_object_mm = 1000.0
-pixel_pitch_mm = 0.1
-[object]
-thickness_mm = "thickness.tif"
-material = "aluminium"
-[source]
-kvp = 60
-[noise]
+SCENE = PHANTOM_SCENE_TOML + """[noise]
 poisson_gain_dn = 1.2
 read_noise_dn = 6.3
 """
