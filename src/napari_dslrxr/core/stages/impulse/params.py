@@ -85,7 +85,7 @@ class ImpulseParams:
         "help": "passes on a grey image and on each raw CFA plane (0 skips)", "unit": "passes", "min": 0, "max": 10})
     window_px: int = field(default=5, metadata={
         "help": "median window of the first detection: 3 = the 8 neighbours, 5 = the 8 pixels two steps away "
-                "(finds patches up to 3x3 px)", "unit": "px", "min": 3, "max": 5})
+                "(finds patches up to 3x3 px)", "unit": "px", "choices": (3, 5)})
     max_patch_px: int = field(default=4, metadata={
         "help": "largest pulse patch side grown into", "unit": "px", "min": 1, "max": 8})
     spots: str = field(default="bright", metadata={
