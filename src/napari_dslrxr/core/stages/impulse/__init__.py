@@ -59,7 +59,7 @@ exact test runs on them only; later passes re-test only the neighbourhood of rep
 pixels. See benchmarks/bench_impulse.py for the 6000x4000 RGB timings.
 
 Modules: ``params`` (parameters, result), ``neighbourhoods`` (polyphase components,
-ring and window medians, robust sigma), ``noise_model`` (mixture and EM fit),
+ring and window medians), ``noise_model`` (mixture and EM fit),
 ``detection`` (candidates, exact test, texture guard, growth, one channel's passes),
 ``colour`` (HSV path), ``removal`` (:func:`remove_impulses`), ``cfa`` (raw Bayer planes).
 """

@@ -1,5 +1,5 @@
 """Pixel neighbourhoods of the impulse stage: polyphase components, ring medians and
-spreads, masked window medians, flat-index helpers, and the robust sigma they share."""
+spreads, masked window medians and flat-index helpers."""
 
 from __future__ import annotations
 
@@ -15,15 +15,8 @@ from .params import _FLOAT
 _REPLACEMENT_WINDOWS_PX = (3, 5, 7, 9)
 _REPLACEMENT_MIN_GOOD = (5, 8, 12, 12)
 
-#: Standard deviation of a Gaussian per unit of its interquartile range (1 / 1.349) and per
-#: unit of its median absolute deviation (1.4826): the robust sigmas of this stage.
+#: Standard deviation of a Gaussian per unit of its interquartile range (1 / 1.349).
 IQR_TO_SIGMA = 1.0 / 1.349
-MAD_TO_SIGMA = 1.4826
-
-
-def robust_sigma(residuals: np.ndarray) -> float:
-    """Noise sigma of residuals centred on zero: 1.4826 x their median absolute value."""
-    return MAD_TO_SIGMA * float(np.median(np.abs(residuals)))
 
 
 @dataclass

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .neighbourhoods import robust_sigma
+from ...robust import robust_sigma
 from .params import _FLOAT, MEDIAN_RESIDUAL_VARIANCE_FACTOR, ImpulseParams
 
 #: Percentage of the EM samples, the darkest, whose residual variance is the floor of the
@@ -69,10 +69,10 @@ def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, polarit
     """Fit a, b and P by EM on residuals ``d`` and medians ``m`` (1-D float64 subsample)."""
     density = 1.0 / value_range if polarity else 1.0 / (2.0 * value_range)
     var_floor = max((1e-4 * value_range) ** 2, 1e-12)
-    mad = robust_sigma(d)
+    mad = robust_sigma(d, center=0.0)
     if photon_counting:
         level = np.maximum(m - float(np.percentile(m, 0.5)), 0.0) + 1.0
-        scale = robust_sigma(d / np.sqrt(level))
+        scale = robust_sigma(d / np.sqrt(level), center=0.0)
         a, b = max(scale * scale, 0.0), max(var_floor, 0.0)
         dark_level, dark_variance = _dark_end(d, m)
         var_floor = max(var_floor, dark_variance)
@@ -130,7 +130,7 @@ def _dark_end(d: np.ndarray, m: np.ndarray) -> tuple[float, float]:
     dark = m <= np.percentile(m, _DARK_END_PERCENT)
     if np.count_nonzero(dark) < 50:
         return float("nan"), 0.0
-    return float(np.median(m[dark])), robust_sigma(d[dark]) ** 2
+    return float(np.median(m[dark])), robust_sigma(d[dark], center=0.0) ** 2
 
 
 def _gain(model: _NoiseModel | None, params: ImpulseParams) -> float:
