@@ -725,6 +725,38 @@ def psf_kernel_key(psf_path: str | os.PathLike, source_to_object_mm: float, sour
     return ("psf", str(psf_path), float(source_to_object_mm), float(source_to_detector_mm))
 
 
+def _psf_kernel(psf_path: str | os.PathLike, source_to_object_mm: float | None,
+                source_to_detector_mm: float | None, cache: dict | None) -> np.ndarray:
+    """The PSF kernel at this geometry: from ``cache`` (keyed by :func:`psf_kernel_key`), or
+    read from the model file and stored there."""
+    if source_to_object_mm is None or source_to_detector_mm is None:
+        raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
+    key = psf_kernel_key(psf_path, source_to_object_mm, source_to_detector_mm)
+    kernel = cache.get(key) if cache is not None else None
+    if kernel is None:
+        from .psf import load_psf
+
+        kernel = load_psf(psf_path).kernel(source_to_object_mm, source_to_detector_mm)
+        if cache is not None:
+            cache[key] = kernel
+    return kernel
+
+
+def _reference_frames(flat_paths: Sequence[str | os.PathLike], dark_paths: Sequence[str | os.PathLike],
+                      shape: tuple[int, ...] | None = None, shape_of: str | None = None):
+    """Read the flats and darks, which must all have ``shape`` (``shape_of`` says whose, for
+    the message); without ``shape``, the first frame's. Returns ``(flats, darks, shape)``."""
+    flats, darks = load_frames(flat_paths), load_frames(dark_paths)
+    if shape is None:
+        shape = (flats or darks)[0].shape
+        shape_of = f"the other reference frames' {shape}"
+    for name, frame_paths, frames in (("flat", flat_paths, flats), ("dark", dark_paths, darks)):
+        for p, f in zip(frame_paths, frames, strict=True):
+            if f.shape != shape:
+                raise InputError(p, f"{name} frame shape {f.shape} differs from {shape_of}")
+    return flats, darks, shape
+
+
 def prepare_batch_references(input_paths: Sequence[str | os.PathLike], *, params: PipelineParams,
                              flat_paths: Sequence[str | os.PathLike] = (),
                              dark_paths: Sequence[str | os.PathLike] = (),
@@ -747,21 +779,10 @@ def prepare_batch_references(input_paths: Sequence[str | os.PathLike], *, params
     params = validate_params(params)
     cache: dict = {}
     if psf_path is not None:
-        if source_to_object_mm is None or source_to_detector_mm is None:
-            raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
-        from .psf import load_psf
-
-        cache[psf_kernel_key(psf_path, source_to_object_mm, source_to_detector_mm)] = \
-            load_psf(psf_path).kernel(source_to_object_mm, source_to_detector_mm)
+        _psf_kernel(psf_path, source_to_object_mm, source_to_detector_mm, cache)
     if not flat_paths and not dark_paths:
         return cache
-    flats = load_frames(flat_paths)
-    darks = load_frames(dark_paths)
-    shape = (flats or darks)[0].shape
-    for name, frame_paths, frames in (("flat", flat_paths, flats), ("dark", dark_paths, darks)):
-        for p, f in zip(frame_paths, frames, strict=True):
-            if f.shape != shape:
-                raise InputError(p, f"{name} frame shape {f.shape} differs from the other reference frames' {shape}")
+    flats, darks, shape = _reference_frames(flat_paths, dark_paths)
     for offset in {repr(input_black_level(p, params)): input_black_level(p, params) for p in input_paths}.values():
         cache[flat_reference_key(flat_paths, dark_paths, shape, offset, params)] = prepare_flat_reference(
             shape, flats=flats, darks=darks, black_level=offset, params=params.flatfield)
@@ -845,27 +866,13 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     t_cfa = time.perf_counter() - t_cfa
     kernel = None
     if psf_path is not None:
-        if source_to_object_mm is None or source_to_detector_mm is None:
-            raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
-        kernel_key = psf_kernel_key(psf_path, source_to_object_mm, source_to_detector_mm)
-        kernel = reference_cache.get(kernel_key) if reference_cache is not None else None
-        if kernel is None:
-            from .psf import load_psf
-
-            kernel = load_psf(psf_path).kernel(source_to_object_mm, source_to_detector_mm)
-            if reference_cache is not None:
-                reference_cache[kernel_key] = kernel
+        kernel = _psf_kernel(psf_path, source_to_object_mm, source_to_detector_mm, reference_cache)
     offset = black if black is not None else params.flatfield.black_level_counts
     cache_key = flat_reference_key(flat_paths, dark_paths, image.shape, offset, params)
     if reference is None and reference_cache is not None:
         reference = reference_cache.get(cache_key)
     if reference is None:
-        flats = load_frames(flat_paths)
-        darks = load_frames(dark_paths)
-        for name, frame_paths, frames in (("flat", flat_paths, flats), ("dark", dark_paths, darks)):
-            for p, f in zip(frame_paths, frames, strict=True):
-                if f.shape != image.shape:
-                    raise InputError(p, f"{name} frame shape {f.shape} differs from {input_path}'s {image.shape}")
+        flats, darks, _ = _reference_frames(flat_paths, dark_paths, image.shape, f"{input_path}'s {image.shape}")
         reference = prepare_flat_reference(image.shape, flats=flats, darks=darks, black_level=offset,
                                            params=params.flatfield)
         if reference_cache is not None:
