@@ -882,22 +882,11 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     result.results["input_kind"] = kind.as_record()
     if impulses_removed is not None:
         result.timings_s["impulse"] = t_cfa
-    inputs = [Path(input_path), *map(Path, flat_paths), *map(Path, dark_paths)]
-    if psf_path is not None:
-        inputs.append(Path(psf_path))
-    spacing = loaded.metadata.get("pixel_spacing_mm")
-    spacing = float(spacing[0]) if spacing else None
     extra = f"{source_to_object_mm}|{source_to_detector_mm}|{json.dumps(patient or {}, sort_keys=True)}"
-    paths = output_paths(input_path, out_dir, params)
-    run_options = None
-    if psf_path is not None:
-        run_options = {"source_to_object_mm": float(source_to_object_mm),
-                       "source_to_detector_mm": float(source_to_detector_mm)}
-    # which of the checksummed inputs are flats and darks (a rerun compares them by role)
-    result.results["reference_frames"] = {"flat": len(flat_paths), "dark": len(dark_paths)}
-    return write_outputs(result, paths, inputs=inputs, params=params, pixel_spacing_mm=spacing,
-                         patient=patient, uid_seed=run_identity(inputs, params, extra),
-                         run_options=run_options)
+    return _write_file_outputs(result, loaded, out_dir, extra, params=params, flat_paths=flat_paths,
+                               dark_paths=dark_paths, psf_path=psf_path, patient=patient,
+                               source_to_object_mm=source_to_object_mm,
+                               source_to_detector_mm=source_to_detector_mm)
 
 
 def _run_display_file(loaded, out_dir: str | os.PathLike, kind, *, params: PipelineParams,
@@ -918,11 +907,26 @@ def _run_display_file(loaded, out_dir: str | os.PathLike, kind, *, params: Pipel
     result.results["input_kind"] = kind.as_record()
     result.results.update({"impulse": "skipped (display radiograph)", "flatfield": "skipped (display radiograph)",
                            "deblur": "skipped (display radiograph)"})
+    extra = f"display|{json.dumps(patient or {}, sort_keys=True)}"
+    return _write_file_outputs(result, loaded, out_dir, extra, params=params, flat_paths=flat_paths,
+                               dark_paths=dark_paths, psf_path=psf_path, patient=patient,
+                               source_to_object_mm=source_to_object_mm,
+                               source_to_detector_mm=source_to_detector_mm)
+
+
+def _write_file_outputs(result: PipelineResult, loaded, out_dir: str | os.PathLike, extra: str, *,
+                        params: PipelineParams, flat_paths: Sequence[str | os.PathLike],
+                        dark_paths: Sequence[str | os.PathLike], psf_path: str | os.PathLike | None,
+                        patient: dict | None, source_to_object_mm: float | None,
+                        source_to_detector_mm: float | None) -> list[Path]:
+    """The outputs of :func:`run_file` (either path): the references by role and the
+    deblurring geometry go into the sidecars; ``extra`` seeds the DICOM UIDs with the inputs'
+    checksums and the parameters."""
+    # which of the checksummed inputs are flats and darks (a rerun compares them by role)
+    result.results["reference_frames"] = {"flat": len(flat_paths), "dark": len(dark_paths)}
     inputs = [loaded.path, *map(Path, flat_paths), *map(Path, dark_paths), *([Path(psf_path)] if psf_path else [])]
     spacing = loaded.metadata.get("pixel_spacing_mm")
     spacing = float(spacing[0]) if spacing else None
-    extra = f"display|{json.dumps(patient or {}, sort_keys=True)}"
-    result.results["reference_frames"] = {"flat": len(flat_paths), "dark": len(dark_paths)}
     run_options = None
     if psf_path is not None and source_to_object_mm is not None and source_to_detector_mm is not None:
         run_options = {"source_to_object_mm": float(source_to_object_mm),
