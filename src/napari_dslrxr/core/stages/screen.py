@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from ..errors import ParameterError
+from ..robust import MAD_TO_SIGMA
 from .region import Region, RegionParams, _line_intersection, _sample, order_corners, polygon_mask, shrink_polygon
 
 
@@ -70,7 +71,7 @@ def _noise_map(small: np.ndarray, tile_px: int = 16) -> np.ndarray:
     b = max(2, tile_px // 2)
     bh, bw = max(1, d.shape[0] // b), max(1, d.shape[1] // b)
     tiles = d[: bh * b, : bw * b].reshape(bh, min(b, d.shape[0]), bw, min(b, d.shape[1]))
-    sigma = np.median(tiles.transpose(0, 2, 1, 3).reshape(bh, bw, -1), axis=2) * np.float32(1.4826)
+    sigma = np.median(tiles.transpose(0, 2, 1, 3).reshape(bh, bw, -1), axis=2) * np.float32(MAD_TO_SIGMA)
     # a flat (noise-free) tile must not give infinite contrast: floor at 1e-3 of the median level
     floor = max(1e-3 * float(np.median(small)), 1e-9)
     return cv2.resize(np.maximum(sigma, floor).astype(np.float32), (small.shape[1], small.shape[0]),
