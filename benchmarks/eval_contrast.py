@@ -4,7 +4,7 @@ For each image (the two CR radiographs in ``$DSLRXR_DATA/cr_dicom`` and two synt
 frames from :mod:`napari_dslrxr.core.simulation.phantom`):
 
 * input display ``x``: the radiograph with a 0.5-99.5 % stretch within its exposed field
-  (CR; :func:`napari_dslrxr.core.stages.region.detect_collimation`, and every score is taken on the
+  (CR; :func:`napari_dslrxr.core.stages.collimation.detect_collimation`, and every score is taken on the
   largest box inside that field, as ours shutters the collimator band black), or the pipeline's
   value-of-interest scaled attenuation image before stages v-vi (synthetic frames);
 * ours: dynamic-range reduction + MUSICA + sigmoid curve (default parameters);
@@ -173,7 +173,7 @@ def main() -> int:
     from napari_dslrxr.core.stages.contrast import enhance_contrast
     from napari_dslrxr.core.stages.dynamic_range import reduce_dynamic_range, sigmoid_lut
     from napari_dslrxr.core.pipeline import enhance_radiograph, process_frame
-    from napari_dslrxr.core.stages.region import detect_collimation
+    from napari_dslrxr.core.stages.collimation import detect_collimation
 
     def strength_params(t: float) -> PipelineParams:
         p = PipelineParams()

@@ -3,7 +3,7 @@
 Runs the ``dslrxr`` process end to end and reads its outputs. The anatomy of a radiograph is
 the attenuating part of its exposed field: pixels above the Otsu threshold
 (:func:`skimage.filters.threshold_otsu`) of the field, which is the collimated field found by
-:func:`~napari_dslrxr.core.stages.region.detect_collimation` (the leg) or the whole frame (the chest).
+:func:`~napari_dslrxr.core.stages.collimation.detect_collimation` (the leg) or the whole frame (the chest).
 Before this routing, the chest came out anti-correlated with the radiograph (r = -0.70 in the
 field) with 24 % of its anatomy blanked, and the leg with all of its anatomy blanked.
 """
@@ -21,7 +21,7 @@ from skimage.filters import threshold_otsu
 
 from napari_dslrxr.core.io import read_image, write_tiff
 from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
-from napari_dslrxr.core.stages.region import detect_collimation
+from napari_dslrxr.core.stages.collimation import detect_collimation
 
 
 def dslrxr(*args: str) -> subprocess.CompletedProcess:

@@ -45,7 +45,7 @@ def test_fit_compresses_only_what_would_clip(rng):
 def test_real_cr_anatomy_is_not_burned_out(shared_data, name):
     """Chest and leg: anatomy (field, no direct exposure) clipped <= 1 % (was 7.8 % / 0.3 %), GCF up."""
     from napari_dslrxr.core.io import read_image
-    from napari_dslrxr.core.stages.region import detect_collimation
+    from napari_dslrxr.core.stages.collimation import detect_collimation
 
     data = read_image(shared_data / "cr_dicom" / f"{name}.dcm").data.astype(np.float32)
     field = detect_collimation(data, inset_px=10).mask

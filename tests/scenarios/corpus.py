@@ -78,7 +78,7 @@ class Scenario:
 def load_source(name: str, long_side_px: int = 720) -> Source:
     """Read a CR radiograph, downsample, find its field and its anatomy (truth for the corpus)."""
     from napari_dslrxr.core.io import read_image
-    from napari_dslrxr.core.stages.region import detect_collimation
+    from napari_dslrxr.core.stages.collimation import detect_collimation
 
     data = read_image(data_dir() / "cr_dicom" / f"{name}.dcm").data.astype(np.float32)
     f = long_side_px / max(data.shape)

@@ -11,7 +11,7 @@ once per input and cached; a slider move runs only the three later stages. Two k
   value-of-interest scaled attenuation image and the screen mask by the core pipeline with
   the display stages switched off (:func:`napari_dslrxr.core.pipeline.process_frame`);
 * **display radiograph** (DICOM CR/DR, bright = bone): used as it is; a collimated field
-  (:func:`napari_dslrxr.core.stages.region.detect_collimation`) is its region, as in the core.
+  (:func:`napari_dslrxr.core.stages.collimation.detect_collimation`) is its region, as in the core.
 
 The live preview runs on the whole image, area-downsampled to at most ``preview_max_pixels``
 (default one megapixel, about what a screen shows), in a thread worker, debounced and

@@ -32,8 +32,9 @@ from .stages.dynamic_range import CLIPPED_HIGH, CLIPPED_LOW, fit_to_display, red
 from .errors import InputError, OutputError, ParameterError
 from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
 from .params import PipelineParams, params_to_dict, params_to_toml, validate_params
-from .stages.region import Region, detect_collimation, detect_screen, direct_exposure_level, polygon_mask, \
-    rectify, voi_window
+from .stages.collimation import detect_collimation
+from .stages.region import Region, direct_exposure_level, polygon_mask, rectify, voi_window
+from .stages.screen import detect_screen
 
 #: Stage names, in the order their progress steps are yielded.
 PIPELINE_STAGES = ("impulse", "flatfield", "region", "deblur", "grey_log", "dynamic_range", "contrast", "display")
@@ -171,7 +172,7 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
 
     Blades shade straight bands of the screen that got (almost) no X-rays; in the
     bone-white attenuation image they are bright and uniform, as on a CR plate, so
-    :func:`~napari_dslrxr.core.region.detect_collimation` finds them. The inset scales with
+    :func:`~napari_dslrxr.core.stages.collimation.detect_collimation` finds them. The inset scales with
     the frame (``collimation_inset_px`` is for a 2000 px radiograph).
     """
     h, w = attenuation.shape
@@ -458,7 +459,7 @@ def scale_display_radiograph(image: np.ndarray, params: PipelineParams | None = 
         Uses ``region`` (VOI percentiles, ``detect_collimation``, ``collimation_inset_px``).
     mask : ndarray, bool, optional
         Region of interest for the statistics. Default: when ``params.region.detect_collimation``
-        is true, the exposed field found by :func:`~napari_dslrxr.core.stages.region.detect_collimation`;
+        is true, the exposed field found by :func:`~napari_dslrxr.core.stages.collimation.detect_collimation`;
         None (all pixels) when no collimation is found or detection is off.
 
     Returns

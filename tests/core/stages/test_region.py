@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from napari_dslrxr.core.errors import ParameterError
-from napari_dslrxr.core.stages.region import RegionParams, detect_screen, order_corners, rectify, voi_window
+from napari_dslrxr.core.stages.region import RegionParams, order_corners, rectify, voi_window
+from napari_dslrxr.core.stages.screen import detect_screen
 
 
 def _quad_frame(rng, shape, corners):
@@ -114,7 +115,7 @@ def _collimated_radiograph(rng, shape, margins, rotation_deg, noise=0.02):
     ((360, 480), (None, 50, 90, 35), 0.0),        # left blade absent
 ])
 def test_collimation_field_against_truth(rng, shape, margins, rotation):
-    from napari_dslrxr.core.stages.region import detect_collimation
+    from napari_dslrxr.core.stages.collimation import detect_collimation
 
     image, truth = _collimated_radiograph(rng, shape, margins, rotation)
     region = detect_collimation(image)
@@ -134,7 +135,7 @@ def test_collimation_field_against_truth(rng, shape, margins, rotation):
 
 
 def test_no_collimation_gives_the_whole_frame(rng):
-    from napari_dslrxr.core.stages.region import detect_collimation
+    from napari_dslrxr.core.stages.collimation import detect_collimation
 
     image, truth = _collimated_radiograph(rng, (300, 400), (None, None, None, None), 0.0)
     assert truth.all()
@@ -148,7 +149,7 @@ def test_no_collimation_gives_the_whole_frame(rng):
 
 def test_collimation_bad_parameters(rng):
     from napari_dslrxr.core.errors import InputError
-    from napari_dslrxr.core.stages.region import detect_collimation
+    from napari_dslrxr.core.stages.collimation import detect_collimation
 
     image = rng.normal(0, 1, (64, 64))
     with pytest.raises(ParameterError, match="max_tilt_deg"):
@@ -161,7 +162,7 @@ def test_collimation_bad_parameters(rng):
 
 def test_collimation_on_real_cr(shared_data):
     from napari_dslrxr.core.io import read_image
-    from napari_dslrxr.core.stages.region import detect_collimation
+    from napari_dslrxr.core.stages.collimation import detect_collimation
 
     leg = read_image(shared_data / "cr_dicom" / "RG3_UNCR.dcm").data
     region = detect_collimation(leg)

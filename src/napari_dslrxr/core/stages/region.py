@@ -286,17 +286,3 @@ def rectify(image: np.ndarray, polygon_xy: np.ndarray, *, size: tuple[int, int] 
     if arr.ndim == 3 and arr.shape[2] > 4:
         return np.stack([rectify(arr[..., c], poly, size=size) for c in range(arr.shape[2])], axis=-1)
     return cv2.warpPerspective(arr, transform, (ow, oh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-
-
-#: Names defined in the screen and collimation modules, importable from here as before.
-_ELSEWHERE = {"detect_screen": "screen", "screen_evidence": "screen", "detect_collimation": "collimation"}
-
-
-def __getattr__(name: str):
-    # lazy, so that either module may be imported first (they import this one)
-    if name in _ELSEWHERE:
-        import importlib
-
-        return getattr(importlib.import_module(f"{__package__}.{_ELSEWHERE[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
