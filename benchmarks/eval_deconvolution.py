@@ -48,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
 from napari_dslrxr.core.stages import deconvolution as dc
+from napari_dslrxr.core.stages import regularisation as rg
 from napari_dslrxr.core.io import read_image  # noqa: E402
 from napari_dslrxr.core.metrics import global_contrast_factor  # noqa: E402
 from napari_dslrxr.core.psf import PSFModel  # noqa: E402
@@ -229,7 +230,7 @@ def run_case(name: str, rel: str, crop, kernel: np.ndarray, rng) -> dict:
     add("blurred + noise", noisy, 0.0)
     for method in ("adaptive", "rls", "wiener"):
         t0 = time.perf_counter()
-        reg = dc.estimate_regularisation(noisy, kernel, method)
+        reg = rg.estimate_regularisation(noisy, kernel, method)
         x = dc.deconvolve(noisy, kernel, method=method, reg=reg)
         add(f"ours {method} (auto)", x, time.perf_counter() - t0, {"reg": reg})
 

@@ -11,6 +11,7 @@ from scipy import ndimage
 
 from napari_dslrxr.cli import main
 from napari_dslrxr.core.stages import deconvolution as dc
+from napari_dslrxr.core.stages import regularisation as rg
 from napari_dslrxr.core.psf import PSFModel, save_psf
 
 
@@ -52,7 +53,7 @@ def test_kernel_deconvolution_writes_float32_and_sidecar(files, tmp_path, capsys
     sidecar = json.loads(out.with_name(out.name + ".json").read_text())
     assert sidecar["stage"] == "deconvolve"
     assert sidecar["parameters"]["method"] == "adaptive" and sidecar["parameters"]["reg"] == "auto"
-    assert sidecar["results"]["reg_used"] == pytest.approx(dc.estimate_regularisation(counts, kernel, "adaptive"))
+    assert sidecar["results"]["reg_used"] == pytest.approx(rg.estimate_regularisation(counts, kernel, "adaptive"))
     assert len(sidecar["inputs"]) == 2
     assert "auto" in capsys.readouterr().out
 

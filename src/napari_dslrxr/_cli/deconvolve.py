@@ -68,6 +68,7 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from ..core.stages import deconvolution as dc
+        from ..core.stages.regularisation import choose_regularisation
         from ..core.errors import ParameterError
         from ..core.io import read_image, write_tiff
         from ..core.io.provenance import write_sidecar
@@ -106,7 +107,7 @@ def register(app: typer.Typer) -> None:
         image = read_image(input_path).data
         t_read = time.perf_counter() - t0
         t0 = time.perf_counter()
-        auto = dc.choose_regularisation(image, kern, method) if reg_value == "auto" else None
+        auto = choose_regularisation(image, kern, method) if reg_value == "auto" else None
         reg_used = auto.reg if auto is not None else float(reg_value)
         for warning in auto.warnings if auto is not None else ():
             print(f"dslrxr: warning: {input_path}: automatic regularisation unreliable: {warning}", file=sys.stderr)

@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from magicgui.widgets import CheckBox, Container, FileEdit, FloatLogSlider, PushButton, create_widget
 
-from ..core.stages.deconvolution import DeconvolutionParams, deconvolve, deconvolve_steps, estimate_regularisation
+from ..core.stages.deconvolution import DeconvolutionParams, deconvolve, deconvolve_steps
+from ..core.stages.regularisation import estimate_regularisation
 from ..core.psf.fit_params import EdgeFitSettings
 from ..core.errors import ParameterError
 from ..core.param_fields import field_info

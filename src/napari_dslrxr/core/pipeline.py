@@ -99,7 +99,8 @@ def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> 
 
 def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, params: PipelineParams,
                   results: dict) -> np.ndarray:
-    from .stages.deconvolution import check_reg, choose_regularisation, deconvolve
+    from .stages.deconvolution import check_reg, deconvolve
+    from .stages.regularisation import choose_regularisation
 
     # scale each channel to about [0, 1] over the region (the solver's expected range)
     chans = colour if colour.ndim == 3 else colour[..., None]

@@ -8,6 +8,7 @@ from scipy import ndimage
 from skimage import restoration
 
 from napari_dslrxr.core.stages import deconvolution as dc
+from napari_dslrxr.core.stages import regularisation as rg
 from napari_dslrxr.core.errors import InputError, ParameterError
 
 
@@ -120,7 +121,7 @@ def test_gcf_tracks_the_truth_not_the_noise(peak_counts):
 
 def test_auto_reg_is_close_to_the_truth_optimum_for_rls(scene):
     truth, kernel, noisy = scene
-    auto = dc.estimate_regularisation(noisy, kernel, "rls")
+    auto = rg.estimate_regularisation(noisy, kernel, "rls")
     at_auto = psnr(truth, dc.deconvolve(noisy, kernel, method="rls", reg=auto))
     best = max(psnr(truth, dc.deconvolve(noisy, kernel, method="rls", reg=r)) for r in 10.0 ** np.arange(0, 6.1, 0.5))
     assert at_auto > best - 0.5, f"auto reg {auto:.3g}: {at_auto:.2f} dB vs grid best {best:.2f} dB"
@@ -140,7 +141,7 @@ def test_reg_scales_with_the_noise_not_the_units(scene):
     a = dc.deconvolve(noisy, kernel, method="adaptive", reg=300.0)
     b = dc.deconvolve(noisy * 1000.0 + 50.0, kernel, method="adaptive", reg=300.0)
     np.testing.assert_allclose((b - 50.0) / 1000.0, a, atol=2e-4)
-    assert dc.estimate_regularisation(noisy * 1000.0, kernel) == pytest.approx(dc.estimate_regularisation(noisy, kernel), rel=1e-3)
+    assert rg.estimate_regularisation(noisy * 1000.0, kernel) == pytest.approx(rg.estimate_regularisation(noisy, kernel), rel=1e-3)
 
 
 # --------------------------------------------------------------------------- geometry and borders

@@ -576,7 +576,7 @@ def deconvolve(image: np.ndarray, kernel: np.ndarray, *, method: str = "adaptive
         ``"adaptive"`` (Fortunato-Oliveira sparse adaptive prior), ``"wiener"`` or ``"rls"``.
     reg : float or "auto"
         Regularisation knob (gradient prior precision relative to the noise; larger = smoother),
-        or ``"auto"`` for :func:`estimate_regularisation`.
+        or ``"auto"`` for :func:`~napari_dslrxr.core.stages.regularisation.estimate_regularisation`.
     progress : callable, optional
         Called as ``progress(done, total)`` after each step.
 
@@ -594,16 +594,3 @@ def deconvolve(image: np.ndarray, kernel: np.ndarray, *, method: str = "adaptive
             return stop.value
         if progress is not None:
             progress(done, total)
-
-
-#: The automatic choice lives in :mod:`.regularisation`; its names stay importable from here.
-_ELSEWHERE = ("AUTO_MAX_NOISE_GAIN", "RegularisationChoice", "estimate_regularisation", "model_regularisation",
-              "choose_regularisation", "flat_noise_gain")
-
-
-def __getattr__(name: str):
-    if name in _ELSEWHERE:  # lazy: the regularisation module imports this one
-        from . import regularisation
-
-        return getattr(regularisation, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
