@@ -124,7 +124,10 @@ def check_field(section: str, f: dataclasses.Field, value):
             raise ParameterError(f"{name}: expected true or false, got {value!r}")
         return bool(value)
     if isinstance(default, (int, float)) or meta.get("auto"):
-        return _check_number(name, value, default, meta)
+        number = _check_number(name, value, default, meta)
+        if meta.get("choices") and number not in meta["choices"]:
+            raise ParameterError(f"{name}: must be one of {', '.join(map(str, meta['choices']))}, got {value!r}")
+        return number
     if isinstance(default, str):
         if not isinstance(value, str):
             raise ParameterError(f"{name}: expected a string, got {value!r}")

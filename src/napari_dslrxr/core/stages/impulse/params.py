@@ -6,7 +6,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...errors import ParameterError
 from ...param_fields import validate_fields
 
 _FLOAT = np.float32
@@ -115,8 +114,6 @@ class ImpulseParams:
 
     def __post_init__(self) -> None:
         validate_fields(self, "impulse")
-        if self.window_px not in MEDIAN_RESIDUAL_VARIANCE_FACTOR:
-            raise ParameterError(f"impulse.window_px: must be 3 or 5, got {self.window_px}")
 
 
 @dataclass
