@@ -92,9 +92,14 @@ def _impulse_stage(image: np.ndarray, params: PipelineParams, results: dict) -> 
         results["impulse"] = "skipped (all passes 0)"
         return image
     res = remove_impulses(image, impulse)
-    results["impulse"] = {"pulse_pixels": {k: int(np.count_nonzero(v)) for k, v in res.masks.items()},
-                          "gain": res.gain, "pulse_rate": res.pulse_rate}
+    results["impulse"] = _impulse_record(res)
     return res.image
+
+
+def _impulse_record(res, **where) -> dict:
+    """What the sidecar keeps of an impulse removal: pulse pixels per channel, gain, pulse rate."""
+    return {**where, "pulse_pixels": {k: int(np.count_nonzero(v)) for k, v in res.masks.items()},
+            "gain": res.gain, "pulse_rate": res.pulse_rate}
 
 
 def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, params: PipelineParams,
@@ -862,9 +867,7 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
 
             cfa = remove_impulses_cfa(loaded.raw.cfa_planes, params.impulse)
             image = demosaic_cleaned_raw(input_path, cfa.image, loaded.raw)
-            impulses_removed = {"space": "cfa",
-                                "pulse_pixels": {k: int(np.count_nonzero(v)) for k, v in cfa.masks.items()},
-                                "gain": cfa.gain, "pulse_rate": cfa.pulse_rate}
+            impulses_removed = _impulse_record(cfa, space="cfa")
     t_cfa = time.perf_counter() - t_cfa
     kernel = None
     if psf_path is not None:
