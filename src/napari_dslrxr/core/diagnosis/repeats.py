@@ -8,6 +8,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import InputError
+from ..robust import robust_sigma
 from ..simulation.physics_terms import ChainGrid
 from ..simulation.simulator import block_mean
 from .mismatch import diagnose
@@ -79,7 +80,7 @@ def noise_model_from_repeats(frames: np.ndarray, binning: int, n_bins: int = 24)
         if sel.sum() >= 20:
             dd = d.ravel()[sel]
             xs.append(level.ravel()[sel].mean())
-            vs.append((1.4826 * np.median(np.abs(dd - np.median(dd)))) ** 2)
+            vs.append(robust_sigma(dd) ** 2)
     if len(xs) < 2:
         raise InputError(None, "too few pixels to estimate the noise model from the repeats")
     slope, intercept = np.polyfit(np.array(xs), np.array(vs), 1)
