@@ -40,16 +40,11 @@ def residual_profiles(z: np.ndarray, mask: np.ndarray, thickness_coarse: np.ndar
     Returns a dict of profiles ``{"rows", "columns", "radius", "edge_distance_px", "thickness_mm",
     "intensity_dn"}`` each with bin centres, mean z, bin z-score (``Σz/√n``) and counts.
     """
-    from scipy import ndimage
-
     h, w = z.shape
     rr, cc = np.broadcast_arrays(np.arange(h)[:, None], np.arange(w)[None, :])
     zm, m = z[mask], mask
     rho = np.sqrt(((grid.x**2 + grid.y**2) / 2.0) * np.ones(z.shape))
-    attenuating = thickness_coarse > 0.5 * max(float(thickness_coarse.max()), 1e-12) * 0.1
-    inside = ndimage.distance_transform_edt(attenuating)
-    outside = ndimage.distance_transform_edt(~attenuating)
-    signed = np.where(attenuating, -inside + 0.5, outside - 0.5)
+    signed = signed_edge_distance(thickness_coarse)
     nbins = 32
     rr, cc, signed = rr * px_scale, cc * px_scale, signed * px_scale
     return {
@@ -76,6 +71,8 @@ def multiscale_maps(z: np.ndarray, mask: np.ndarray, scales=(1, 4, 16)) -> dict[
 
 
 def signed_edge_distance(thickness_coarse: np.ndarray) -> np.ndarray:
+    """Distance (fitted-grid pixels) to the edge of the attenuating object (above 5 % of the
+    thickest part): negative inside, positive outside, +-0.5 next to the edge."""
     from scipy import ndimage
 
     attenuating = thickness_coarse > 0.05 * max(float(thickness_coarse.max()), 1e-12)
