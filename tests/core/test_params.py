@@ -93,7 +93,7 @@ def test_field_info_is_the_one_source_of_help_unit_and_range():
 
     info = field_info(ContrastParams, "bone_contrast")
     assert (info["min"], info["max"], info["default"], info["unit"]) == (0.5, 3.0, 2.0, "gain")
-    passes = field_info(ImpulseParams, "passes_h")  # ImpulseParams has no metadata of its own
+    passes = field_info(ImpulseParams, "passes_h")
     assert (passes["min"], passes["max"], passes["default"]) == (0, 10, 3)
     text = params_to_toml()
     assert f"# {passes['help']} (unit: passes; range 0 to 10)" in text
