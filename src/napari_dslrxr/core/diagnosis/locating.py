@@ -7,6 +7,7 @@ import numpy as np
 
 from ..simulation.physics_terms import ChainGrid
 from .fitting import orthonormal
+from .terms import _legendre_basis
 
 
 def _binned_profile(values: np.ndarray, z: np.ndarray, edges: np.ndarray) -> dict:
@@ -90,21 +91,10 @@ def checkerboard(shape: tuple[int, int], block: int) -> np.ndarray:
 def smooth_term_delta_bic(z: np.ndarray, mask: np.ndarray, q0: np.ndarray, grid: ChainGrid,
                            degree: int = 4) -> tuple[float, np.ndarray]:
     """ΔBIC of a generic smooth 2-D Legendre surface in the residual (location of leftovers)."""
-    from numpy.polynomial import legendre
-
-    xs = np.broadcast_to(grid.x / max(np.abs(grid.x).max(), 1e-9), z.shape)[mask]
-    ys = np.broadcast_to(grid.y / max(np.abs(grid.y).max(), 1e-9), z.shape)[mask]
-    cols = []
-    for i in range(degree + 1):
-        for j in range(degree + 1 - i):
-            if i == 0 and j == 0:
-                continue
-            ci = np.zeros(i + 1)
-            ci[i] = 1
-            cj = np.zeros(j + 1)
-            cj[j] = 1
-            cols.append(legendre.legval(xs, ci) * legendre.legval(ys, cj))
-    basis = np.stack(cols, 1)
+    # the smooth competitors' basis, P_i(y) P_j(x); columns here in the order P_i(x) P_j(y)
+    full = _legendre_basis(grid, degree)
+    pairs = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i) if i or j]
+    basis = np.ascontiguousarray(full[[pairs.index((j, i)) for i, j in pairs]][:, mask].T)
     zm = z[mask]
     perp = basis - q0 @ (q0.T @ basis)
     qb = orthonormal(perp, np.linalg.norm(basis, axis=0).max())
