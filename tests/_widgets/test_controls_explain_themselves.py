@@ -13,7 +13,8 @@ from napari_dslrxr._widgets._common import param_tooltip
 from napari_dslrxr.core.stages.contrast import ContrastParams
 from napari_dslrxr.core.stages.dynamic_range import DynamicRangeParams
 from napari_dslrxr.core.stages.impulse import ImpulseParams
-from napari_dslrxr.core.params import field_info, params_to_toml
+from napari_dslrxr.core.param_fields import field_info
+from napari_dslrxr.core.params import params_to_toml
 
 pytestmark = pytest.mark.gui
 

@@ -43,3 +43,18 @@ def test_core_and_cli_import_without_gui_packages():
     out = subprocess.run([sys.executable, "-c", code, *packages], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "", f"GUI packages imported by the headless core: {out.stdout.strip()}"
+
+
+#: Libraries the command line must not load to start (``dslrxr --help`` stays quick): each
+#: command imports what it needs when it runs.
+HEAVY_AT_START = ("scipy", "matplotlib", "dask", "distributed", "skimage", "rawpy", "pydicom", "tifffile")
+
+
+def test_cli_starts_without_heavy_libraries():
+    code = (
+        "import sys, napari_dslrxr.cli\n"
+        f"print(','.join(sorted({{k.split('.')[0] for k in sys.modules}} & set({HEAVY_AT_START!r}))))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "", f"imported on start-up: {out.stdout.strip()}"

@@ -88,11 +88,12 @@ def test_batch_section_accepts_local_and_addresses_and_never_changes_the_run_ide
 def test_field_info_is_the_one_source_of_help_unit_and_range():
     from napari_dslrxr.core.stages.contrast import ContrastParams
     from napari_dslrxr.core.stages.impulse import ImpulseParams
-    from napari_dslrxr.core.params import field_info, params_to_toml
+    from napari_dslrxr.core.param_fields import field_info
+    from napari_dslrxr.core.params import params_to_toml
 
     info = field_info(ContrastParams, "bone_contrast")
     assert (info["min"], info["max"], info["default"], info["unit"]) == (0.5, 3.0, 2.0, "gain")
-    passes = field_info(ImpulseParams, "passes_h")  # ImpulseParams has no metadata of its own
+    passes = field_info(ImpulseParams, "passes_h")
     assert (passes["min"], passes["max"], passes["default"]) == (0, 10, 3)
     text = params_to_toml()
     assert f"# {passes['help']} (unit: passes; range 0 to 10)" in text

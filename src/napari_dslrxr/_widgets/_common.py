@@ -494,8 +494,8 @@ def param_tooltip(cls: type, name: str, *, label: str = "", section: str | None 
                   term: str | None = None) -> str:
     """Tooltip of the control of field ``name`` of parameter dataclass ``cls``: meaning, unit,
     range (or choices), default and where it lives in the parameter file, all from the
-    field's metadata (:func:`napari_dslrxr.core.params.field_info`)."""
-    from ..core.params import field_info
+    field's metadata (:func:`napari_dslrxr.core.param_fields.field_info`)."""
+    from ..core.param_fields import field_info
 
     info = field_info(cls, name)
     lines = [f"{label}: {info['help']}" if label else info["help"]]
@@ -527,7 +527,7 @@ def param_widget(cls: type, name: str, *, label: str, section: str | None = None
     """
     from magicgui.widgets import CheckBox, ComboBox, FloatSlider, FloatSpinBox, SpinBox
 
-    from ..core.params import field_info
+    from ..core.param_fields import field_info
 
     info = field_info(cls, name)
     default = kwargs.pop("value", info.get("default"))

@@ -22,16 +22,16 @@ import tomli_w
 
 from .errors import InputError, ParameterError
 from .io.input_kind import InputParams
-from .param_fields import check_field, describe_range, field_info, validate_fields
+from .param_fields import describe_range, field_info, validate_fields
 from .stages.contrast import ContrastParams
 from .stages.deconvolution import DeconvolutionParams
 from .stages.dynamic_range import DynamicRangeParams
 from .stages.flatfield import FlatFieldParams
 from .stages.region import RegionParams
 
-__all__ = ["DeblurParams", "OutputParams", "PipelineParams", "SECTION_HELP", "check_field", "default_params_toml",
-           "field_info", "load_params", "load_section", "section_class", "params_from_dict", "params_to_dict", "params_to_toml", "save_params",
-           "validate_params"]
+__all__ = ["BatchParams", "DeblurParams", "OutputParams", "PipelineParams", "RUN_ONLY_SECTIONS", "SECTION_HELP",
+           "default_params_toml", "load_params", "load_section", "section_class", "params_from_dict", "params_to_dict",
+           "params_to_toml", "save_params", "validate_params"]
 
 
 def _impulse_class():

@@ -96,3 +96,9 @@ def test_parameter_file_section_and_validation(tmp_path):
 def test_record_round_trip():
     kind = decide_input_kind("dicom", _dicom_meta())
     assert type(kind).from_record(kind.as_record()) == kind
+
+
+def test_an_unknown_requested_kind_is_refused_as_in_the_parameter_file():
+    with pytest.raises(ParameterError, match=r"input\.input_kind: must be one of auto, camera, display, "
+                                             r"got 'dispaly'; did you mean 'display'\?"):
+        decide_input_kind("tiff", {}, None, requested="dispaly")

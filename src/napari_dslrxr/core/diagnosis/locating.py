@@ -7,6 +7,7 @@ import numpy as np
 
 from ..simulation.physics_terms import ChainGrid
 from .fitting import orthonormal
+from .terms import _legendre_basis
 
 
 def _binned_profile(values: np.ndarray, z: np.ndarray, edges: np.ndarray) -> dict:
@@ -40,16 +41,11 @@ def residual_profiles(z: np.ndarray, mask: np.ndarray, thickness_coarse: np.ndar
     Returns a dict of profiles ``{"rows", "columns", "radius", "edge_distance_px", "thickness_mm",
     "intensity_dn"}`` each with bin centres, mean z, bin z-score (``Σz/√n``) and counts.
     """
-    from scipy import ndimage
-
     h, w = z.shape
     rr, cc = np.broadcast_arrays(np.arange(h)[:, None], np.arange(w)[None, :])
     zm, m = z[mask], mask
     rho = np.sqrt(((grid.x**2 + grid.y**2) / 2.0) * np.ones(z.shape))
-    attenuating = thickness_coarse > 0.5 * max(float(thickness_coarse.max()), 1e-12) * 0.1
-    inside = ndimage.distance_transform_edt(attenuating)
-    outside = ndimage.distance_transform_edt(~attenuating)
-    signed = np.where(attenuating, -inside + 0.5, outside - 0.5)
+    signed = signed_edge_distance(thickness_coarse)
     nbins = 32
     rr, cc, signed = rr * px_scale, cc * px_scale, signed * px_scale
     return {
@@ -76,6 +72,8 @@ def multiscale_maps(z: np.ndarray, mask: np.ndarray, scales=(1, 4, 16)) -> dict[
 
 
 def signed_edge_distance(thickness_coarse: np.ndarray) -> np.ndarray:
+    """Distance (fitted-grid pixels) to the edge of the attenuating object (above 5 % of the
+    thickest part): negative inside, positive outside, +-0.5 next to the edge."""
     from scipy import ndimage
 
     attenuating = thickness_coarse > 0.05 * max(float(thickness_coarse.max()), 1e-12)
@@ -93,21 +91,10 @@ def checkerboard(shape: tuple[int, int], block: int) -> np.ndarray:
 def smooth_term_delta_bic(z: np.ndarray, mask: np.ndarray, q0: np.ndarray, grid: ChainGrid,
                            degree: int = 4) -> tuple[float, np.ndarray]:
     """ΔBIC of a generic smooth 2-D Legendre surface in the residual (location of leftovers)."""
-    from numpy.polynomial import legendre
-
-    xs = np.broadcast_to(grid.x / max(np.abs(grid.x).max(), 1e-9), z.shape)[mask]
-    ys = np.broadcast_to(grid.y / max(np.abs(grid.y).max(), 1e-9), z.shape)[mask]
-    cols = []
-    for i in range(degree + 1):
-        for j in range(degree + 1 - i):
-            if i == 0 and j == 0:
-                continue
-            ci = np.zeros(i + 1)
-            ci[i] = 1
-            cj = np.zeros(j + 1)
-            cj[j] = 1
-            cols.append(legendre.legval(xs, ci) * legendre.legval(ys, cj))
-    basis = np.stack(cols, 1)
+    # the smooth competitors' basis, P_i(y) P_j(x); columns here in the order P_i(x) P_j(y)
+    full = _legendre_basis(grid, degree)
+    pairs = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i) if i or j]
+    basis = np.ascontiguousarray(full[[pairs.index((j, i)) for i, j in pairs]][:, mask].T)
     zm = z[mask]
     perp = basis - q0 @ (q0.T @ basis)
     qb = orthonormal(perp, np.linalg.norm(basis, axis=0).max())

@@ -36,6 +36,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import InputError, ParameterError
+from ..robust import robust_sigma
 from ..simulation.physics_terms import LIBRARY, ChainGrid, PhysicsTerm, get_term
 from ..simulation.simulator import ChainModel, Scene, block_mean
 from . import noise as noise_mod
@@ -147,7 +148,7 @@ def _pulses(image: np.ndarray, z_threshold: float = 8.0, n_bins: int = 16) -> np
             # most high-pass values are 0 and the MAD collapses (1.12 undoes the 1 % trim)
             lo, hi = np.percentile(h, (1.0, 99.0))
             trimmed = h[(h >= lo) & (h <= hi)]
-            sigma[b] = max(1.4826 * np.median(np.abs(h - np.median(h))), 1.12 * float(np.std(trimmed)))
+            sigma[b] = max(robust_sigma(h), 1.12 * float(np.std(trimmed)))
     sigma = np.maximum(sigma, max(float(np.max(sigma)) * 1e-3, 1e-12))
     return hp > z_threshold * sigma[which]
 

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..robust import robust_sigma
 
 SHORT_LAG_PX = 5      # correlation assumed to vanish beyond this lag (coarse pixels)
 SILL_LAG_PX = 7       # lag used for the sill (variance)
@@ -166,7 +167,7 @@ def _robust_half_ms(diff: np.ndarray) -> float:
     """½ mean square of differences after clipping far outliers (pulses, stray edges)."""
     if diff.size < 50:
         return float("nan")
-    sigma = 1.4826 * np.median(np.abs(diff - np.median(diff)))
+    sigma = robust_sigma(diff)
     kept = diff[np.abs(diff) < 6.0 * max(sigma, 1e-300)]
     # a 6-sigma clip of a Gaussian keeps 1 - 2e-9 of its variance: no correction needed
     return 0.5 * float(np.mean(kept**2))
@@ -287,7 +288,7 @@ def estimate_from_residual(residual_dn: np.ndarray, expected_dn: np.ndarray, off
     if previous is None:
         # rough global variance from pixel differences (robust; refined on the next call)
         d = np.diff(residual_dn, axis=1)[mask[:, 1:] & mask[:, :-1]]
-        sigma2 = (1.4826 * np.median(np.abs(d - np.median(d)))) ** 2 / 2.0
+        sigma2 = robust_sigma(d) ** 2 / 2.0
         rough = np.full(residual_dn.shape, max(sigma2, 1e-12))
     else:
         rough = previous.variance(expected_dn, offset_dn)

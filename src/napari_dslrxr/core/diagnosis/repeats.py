@@ -8,14 +8,15 @@ from typing import Callable
 import numpy as np
 
 from ..errors import InputError
+from ..robust import MAD_TO_SIGMA, robust_sigma
 from ..simulation.physics_terms import ChainGrid
 from ..simulation.simulator import block_mean
 from .mismatch import diagnose
 from .result import DiagnosisOptions, DiagnosisResult
 
 
-def clean_repeats(frames: np.ndarray, z_threshold: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of repeated frames with impulsive spots replaced by the temporal median.
+def clean_repeats(frames: np.ndarray, z_threshold: float = 6.0) -> np.ndarray:
+    """Repeated frames with impulsive spots replaced by the temporal median.
 
     Parameters
     ----------
@@ -27,19 +28,16 @@ def clean_repeats(frames: np.ndarray, z_threshold: float = 6.0) -> tuple[np.ndar
 
     Returns
     -------
-    mean : ndarray, float64, (H, W)
-    spot_fraction : ndarray, float64, (N,)
-        Fraction of pixels replaced per frame.
+    ndarray, float64, (N, H, W)
+        The frames, spots replaced.
     """
     frames = np.asarray(frames, dtype=np.float64)
     if frames.ndim != 3 or frames.shape[0] < 3:
         raise InputError(None, f"need at least 3 repeated 2-D frames, got shape {frames.shape}")
     median = np.median(frames, axis=0)
     diff = frames - median
-    sigma = 1.4826 * np.median(np.abs(diff), axis=(1, 2), keepdims=True)
-    spots = diff > z_threshold * sigma
-    cleaned = np.where(spots, median, frames)
-    return cleaned.mean(axis=0), spots.mean(axis=(1, 2))
+    sigma = MAD_TO_SIGMA * np.median(np.abs(diff), axis=(1, 2), keepdims=True)
+    return np.where(diff > z_threshold * sigma, median, frames)
 
 
 def noise_model_from_repeats(frames: np.ndarray, binning: int, n_bins: int = 24) -> tuple[float, float]:
@@ -79,7 +77,7 @@ def noise_model_from_repeats(frames: np.ndarray, binning: int, n_bins: int = 24)
         if sel.sum() >= 20:
             dd = d.ravel()[sel]
             xs.append(level.ravel()[sel].mean())
-            vs.append((1.4826 * np.median(np.abs(dd - np.median(dd)))) ** 2)
+            vs.append(robust_sigma(dd) ** 2)
     if len(xs) < 2:
         raise InputError(None, "too few pixels to estimate the noise model from the repeats")
     slope, intercept = np.polyfit(np.array(xs), np.array(vs), 1)
@@ -147,10 +145,7 @@ def diagnose_edge_repeats(frames: np.ndarray, *, dark_frame: np.ndarray | None =
             raise InputError(None, "flat frame is not brighter than the dark level everywhere")
         flat /= np.median(flat)
         frames = (frames - dark) / flat + dark
-    median = np.median(frames, axis=0)
-    diff = frames - median
-    sigma = 1.4826 * np.median(np.abs(diff), axis=(1, 2), keepdims=True)
-    cleaned = np.where(diff > 6.0 * sigma, median, frames)
+    cleaned = clean_repeats(frames)
     recording = cleaned.mean(axis=0)
     h, w = recording.shape
     h, w = (h // binning) * binning, (w // binning) * binning

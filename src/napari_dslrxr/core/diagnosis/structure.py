@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .locating import _quantile_edges
+
 N_TESTS = 9
 
 
@@ -191,9 +193,3 @@ def structure_tests(z: np.ndarray, mask: np.ndarray, chi2: float, n_effective: f
             text += f" (lag {t['lag_px']} px)"
         signatures.append(text)
     return {"tests": tests, "failed": failed, "signatures": signatures, "alpha": alpha}
-
-
-def _quantile_edges(values: np.ndarray, n_bins: int) -> np.ndarray:
-    edges = np.unique(np.quantile(values, np.linspace(0, 1, n_bins + 1)))
-    edges[-1] += 1e-9
-    return edges

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..param_fields import validate_fields
+from ..param_fields import check_value, validate_fields
 
 CAMERA, DISPLAY, AUTO = "camera", "display", "auto"
 INPUT_KINDS = (AUTO, CAMERA, DISPLAY)
@@ -111,14 +111,6 @@ class InputKind:
         return cls(kind=str(record["kind"]), certain=bool(record.get("certain", False)),
                    evidence=str(record.get("evidence", "")), requested=str(record.get("requested", AUTO)),
                    overridden=bool(record.get("overridden", False)))
-
-
-def check_input_kind(requested: str) -> str:
-    from ..errors import ParameterError
-
-    if requested not in INPUT_KINDS:
-        raise ParameterError(f"input.input_kind: must be one of {', '.join(INPUT_KINDS)}, got {requested!r}")
-    return requested
 
 
 def _header_decision(file_format: str | None, metadata: Mapping) -> tuple[str, str] | None:
@@ -210,7 +202,7 @@ def decide_input_kind(file_format: str | None = None, metadata: Mapping | None =
     -------
     InputKind
     """
-    requested = check_input_kind(requested)
+    requested = check_value(InputParams, "input", "input_kind", requested)
     metadata = metadata or {}
     decided = _header_decision(file_format, metadata)
     if decided is not None:

@@ -58,7 +58,6 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.fft as sfft
 
 from ..errors import InputError, ParameterError
 from ..param_fields import check_value, validate_fields
@@ -252,6 +251,8 @@ def noise_sigma_tiles(image: np.ndarray, block_px: int = 32) -> np.ndarray:
 
 def _padded_shape(shape: tuple[int, int], kernel_shape: tuple[int, int]) -> tuple[int, int]:
     """FFT-friendly size with >= 2 kernel radii (and >= 4 px) of padding on each side."""
+    import scipy.fft as sfft  # not at module level: the command line imports this module to start
+
     out = []
     for n, k in zip(shape, kernel_shape):
         pad = max(2 * ((k - 1) // 2), 4)
@@ -297,6 +298,8 @@ def kernel_otf(kernel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
     Two stages: the row transforms of the kernel's few non-zero rows, then a column FFT.
     """
+    import scipy.fft as sfft
+
     kh, kw = kernel.shape
     if kh > shape[0] or kw > shape[1]:
         raise ParameterError(f"blur kernel {kh}x{kw} is larger than the padded image {shape[0]}x{shape[1]}")
@@ -449,6 +452,8 @@ def _solve_channel(y: np.ndarray, otf_conj: np.ndarray, k2: np.ndarray, reg_spec
 
     ``otf_conj`` is conj(K) (complex64), ``k2`` = |K|^2 (float32), both on the rfft2 grid.
     """
+    import scipy.fft as sfft
+
     Y = sfft.rfft2(y, workers=-1)
     del y
     Y *= otf_conj  # Y <- conj(K) Y
