@@ -191,64 +191,54 @@ def mosaic_planes(rgb: np.ndarray) -> np.ndarray:
     return np.stack([rgb[0::2, 0::2, 0], rgb[0::2, 1::2, 1], rgb[1::2, 0::2, 1], rgb[1::2, 1::2, 2]]).astype(np.float32)
 
 
-def run_texture(seeds, methods):
+def _texture_rows(light, patch, desc, seed, rng, methods) -> list[dict]:
+    """Flagged share per method and path on one texture scene (grey, tinted RGB, CFA planes),
+    over the whole frame (``patch`` None) or over the texture patch (a boolean mask)."""
     from napari_dslrxr.core.stages.impulse import ImpulseParams, remove_impulses_cfa
 
+    def flagged_pct(mask, where):
+        return 100 * float(mask.mean() if where is None else mask[where].mean())
+
     rows = []
-    tint = np.array(gen.TINTS["tinted"])
+    grey = np.clip(np.rint(gen.camera(light[..., None], rng)[..., 0]), 0, 65535).astype(np.uint16)
+    rgb_light = light[..., None] * np.array(gen.TINTS["tinted"])
+    rgb = np.clip(np.rint(gen.camera(rgb_light, rng)), 0, 65535).astype(np.uint16)
+    planes = mosaic_planes(gen.camera(rgb_light, rng).clip(0))
+    for name in methods:
+        if name.startswith("median"):
+            continue
+        for path, image in (("grey", grey), ("hsv", rgb)):
+            _, mask = METHODS[name](image)
+            rows.append({"method": name, "path": path, "scene": desc, "seed": seed,
+                         "flagged_pct": flagged_pct(mask, patch)})
+        if name in ("ours", "previous"):
+            if name == "ours":
+                res = remove_impulses_cfa(planes, ImpulseParams())
+            else:
+                from _previous_impulse import load_previous
+
+                res = load_previous().remove_impulses_cfa(planes)
+            rows.append({"method": name, "path": "cfa", "scene": desc, "seed": seed,
+                         "flagged_pct": flagged_pct(res.any_mask(), None if patch is None else patch[0::2, 0::2])})
+    print(seed, desc, {(r["method"], r["path"]): round(r["flagged_pct"], 3) for r in rows[-8:]}, flush=True)
+    return rows
+
+
+def run_texture(seeds, methods):
+    rows = []
     for seed in seeds:
         rng = np.random.default_rng([seed, 77])
         for kind in ("lines", "mesh"):
             for _ in range(6):
                 light, desc = gen.texture_scene(rng, kind)
-                grey = np.clip(np.rint(gen.camera(light[..., None], rng)[..., 0]), 0, 65535).astype(np.uint16)
-                rgb_light = light[..., None] * tint
-                rgb = np.clip(np.rint(gen.camera(rgb_light, rng)), 0, 65535).astype(np.uint16)
-                planes = mosaic_planes(gen.camera(rgb_light, rng).clip(0))
-                for name in methods:
-                    if name.startswith("median"):
-                        continue
-                    for path, image in (("grey", grey), ("hsv", rgb)):
-                        _, mask = METHODS[name](image)
-                        rows.append({"method": name, "path": path, "scene": desc, "seed": seed,
-                                     "flagged_pct": 100 * float(mask.mean())})
-                    if name in ("ours", "previous"):
-                        if name == "ours":
-                            res = remove_impulses_cfa(planes, ImpulseParams())
-                        else:
-                            from _previous_impulse import load_previous
-
-                            res = load_previous().remove_impulses_cfa(planes)
-                        rows.append({"method": name, "path": "cfa", "scene": desc, "seed": seed,
-                                     "flagged_pct": 100 * float(res.any_mask().mean())})
-                print(seed, desc, {(r["method"], r["path"]): round(r["flagged_pct"], 3) for r in rows[-8:]}, flush=True)
+                rows += _texture_rows(light, None, desc, seed, rng, methods)
     # Texture patches inside a radiograph (the noise model can be fitted on the rest).
     for seed in seeds:
         rng = np.random.default_rng([seed, 78])
         for kind in ("lines", "mesh"):
             for _ in range(3):
                 light, patch, desc = gen.embedded_texture(rng, kind)
-                grey = np.clip(np.rint(gen.camera(light[..., None], rng)[..., 0]), 0, 65535).astype(np.uint16)
-                rgb_light = light[..., None] * tint
-                rgb = np.clip(np.rint(gen.camera(rgb_light, rng)), 0, 65535).astype(np.uint16)
-                planes = mosaic_planes(gen.camera(rgb_light, rng).clip(0))
-                for name in methods:
-                    if name.startswith("median"):
-                        continue
-                    for path, image in (("grey", grey), ("hsv", rgb)):
-                        _, mask = METHODS[name](image)
-                        rows.append({"method": name, "path": path, "scene": desc, "seed": seed,
-                                     "flagged_pct": 100 * float(mask[patch].mean())})
-                    if name in ("ours", "previous"):
-                        if name == "ours":
-                            res = remove_impulses_cfa(planes, ImpulseParams())
-                        else:
-                            from _previous_impulse import load_previous
-
-                            res = load_previous().remove_impulses_cfa(planes)
-                        rows.append({"method": name, "path": "cfa", "scene": desc, "seed": seed,
-                                     "flagged_pct": 100 * float(res.any_mask()[patch[0::2, 0::2]].mean())})
-                print(seed, desc, {(r["method"], r["path"]): round(r["flagged_pct"], 3) for r in rows[-8:]}, flush=True)
+                rows += _texture_rows(light, patch, desc, seed, rng, methods)
     # Whole CR radiographs with noise (no pulses): grey and tinted RGB.
     from napari_dslrxr.core.io import read_image
 

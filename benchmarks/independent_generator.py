@@ -235,47 +235,44 @@ def render(geometry: Geometry, camera: Camera, case: Recording) -> dict:
     white_z = noise / sd
     if camera.noise_smoothing_px > 0:
         noise = ndimage.gaussian_filter(noise, camera.noise_smoothing_px, mode="reflect")
-    recorded = camera.offset_dn + signal_dn + noise
-    if "row_banding" in eff:
-        p = eff["row_banding"]
-        rng_b = np.random.default_rng(2000 + case.seed)
-        recorded = recorded + rng_b.normal(0.0, p["sigma_dn"], (n, 1))
-        expected = expected + 0.0
-    if "adc_ripple" in eff:
-        p = eff["adc_ripple"]
-        recorded = recorded + p["amplitude_dn"] * np.sin(2 * np.pi * recorded / p["period_dn"])
-    recorded = np.round(recorded)
+    recorded = np.round(_banding_and_ripple(camera.offset_dn + signal_dn + noise, case))
     return {"recording": recorded.astype(np.float32), "expected": expected, "sd": sd,
             "white_chi2_per_pixel": float(np.mean(white_z**2)), "mu_per_mm": mu,
             "thickness_scene": phantom_thickness(geometry)}
 
 
-def expected_only(geometry: Geometry, camera: Camera, case: Recording) -> np.ndarray:
-    """Noise-free expected image (DN) with the effects that act on the mean (for SNR figures):
-    banding and ripple are added to it explicitly by the caller through :func:`effect_signal`."""
-    return render(geometry, camera, case)["expected"]
+def _banding_and_ripple(image: np.ndarray, case: Recording) -> np.ndarray:
+    """``image`` (DN) with the case's row banding (seeded by the case) and ADC ripple added."""
+    if "row_banding" in case.effects:
+        rng_b = np.random.default_rng(2000 + case.seed)
+        image = image + rng_b.normal(0.0, case.effects["row_banding"]["sigma_dn"], (image.shape[0], 1))
+    if "adc_ripple" in case.effects:
+        p = case.effects["adc_ripple"]
+        image = image + p["amplitude_dn"] * np.sin(2 * np.pi * image / p["period_dn"])
+    return image
+
+
+def _without_effects(case: Recording) -> Recording:
+    return Recording(seed=case.seed, shift_px=case.shift_px, scale=case.scale, rotation_deg=case.rotation_deg,
+                     kvp_true=case.kvp_true)
+
+
+def _residual_after_refit(columns: list[np.ndarray], with_effect: np.ndarray, sd: np.ndarray) -> tuple[float, float]:
+    """Integrated SNR and max |residual| (in sigma) of ``with_effect`` after the weighted
+    least-squares fit of a constant and ``columns``."""
+    sd = sd.ravel()
+    design = np.stack([np.ones(sd.size), *(c.ravel() for c in columns)], 1) / sd[:, None]
+    coef, *_ = np.linalg.lstsq(design, with_effect.ravel() / sd, rcond=None)
+    resid = with_effect.ravel() / sd - design @ coef
+    return float(np.sqrt(np.sum(resid**2))), float(np.abs(resid).max())
 
 
 def effect_signal(geometry: Geometry, camera: Camera, case: Recording) -> tuple[float, float]:
     """Integrated SNR and max per-pixel |Δ|/σ of the case's effects after the best gain/offset
     refit (what a base model could absorb): Δ = with effects − without, σ = per-pixel noise."""
-    null = Recording(seed=case.seed, shift_px=case.shift_px, scale=case.scale,
-                     rotation_deg=case.rotation_deg, kvp_true=case.kvp_true)
-    base = render(geometry, camera, null)
-    full = render(geometry, camera, case)
-    with_effect = full["expected"]
-    n = geometry.size_px
-    if "row_banding" in case.effects:
-        rng_b = np.random.default_rng(2000 + case.seed)
-        with_effect = with_effect + rng_b.normal(0.0, case.effects["row_banding"]["sigma_dn"], (n, 1))
-    if "adc_ripple" in case.effects:
-        p = case.effects["adc_ripple"]
-        with_effect = with_effect + p["amplitude_dn"] * np.sin(2 * np.pi * with_effect / p["period_dn"])
-    sd = base["sd"]
-    design = np.stack([np.ones(n * n), base["expected"].ravel()], 1) / sd.ravel()[:, None]
-    coef, *_ = np.linalg.lstsq(design, with_effect.ravel() / sd.ravel(), rcond=None)
-    resid = with_effect.ravel() / sd.ravel() - design @ coef
-    return float(np.sqrt(np.sum(resid**2))), float(np.abs(resid).max())
+    base = render(geometry, camera, _without_effects(case))
+    with_effect = _banding_and_ripple(render(geometry, camera, case)["expected"], case)
+    return _residual_after_refit([base["expected"]], with_effect, base["sd"])
 
 
 def effect_signal_after_base_refit(geometry: Geometry, camera: Camera, case: Recording) -> tuple[float, float]:
@@ -285,23 +282,11 @@ def effect_signal_after_base_refit(geometry: Geometry, camera: Camera, case: Rec
     glare, so this SNR is the one that sets their detectability."""
     from dataclasses import replace as _replace
 
-    null = Recording(seed=case.seed, shift_px=case.shift_px, scale=case.scale,
-                     rotation_deg=case.rotation_deg, kvp_true=case.kvp_true)
+    null = _without_effects(case)
     base = render(geometry, camera, null)
     e0 = base["expected"]
     d_mu = render(geometry, camera, _replace(null, mu_scale=1.001))["expected"] - e0
     d_blur = render(_replace(geometry, detector_sigma_mm=geometry.detector_sigma_mm * 1.01), camera,
                     null)["expected"] - e0
-    with_effect = render(geometry, camera, case)["expected"]
-    n = geometry.size_px
-    if "row_banding" in case.effects:
-        rng_b = np.random.default_rng(2000 + case.seed)
-        with_effect = with_effect + rng_b.normal(0.0, case.effects["row_banding"]["sigma_dn"], (n, 1))
-    if "adc_ripple" in case.effects:
-        p = case.effects["adc_ripple"]
-        with_effect = with_effect + p["amplitude_dn"] * np.sin(2 * np.pi * with_effect / p["period_dn"])
-    sd = base["sd"].ravel()
-    design = np.stack([np.ones(n * n), e0.ravel(), d_mu.ravel(), d_blur.ravel()], 1) / sd[:, None]
-    coef, *_ = np.linalg.lstsq(design, with_effect.ravel() / sd, rcond=None)
-    resid = with_effect.ravel() / sd - design @ coef
-    return float(np.sqrt(np.sum(resid**2))), float(np.abs(resid).max())
+    with_effect = _banding_and_ripple(render(geometry, camera, case)["expected"], case)
+    return _residual_after_refit([e0, d_mu, d_blur], with_effect, base["sd"])

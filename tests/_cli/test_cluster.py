@@ -127,6 +127,13 @@ def _external_cluster(folder: Path, n_workers: int):
         log.close()
 
 
+def _start_run(shots: list[Path], refs: list[str], out: Path, address: str) -> subprocess.Popen:
+    """``dslrxr run`` against the scheduler at ``address``, in the background (the test acts meanwhile)."""
+    return subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", "run", *map(str, shots), *refs,
+                             "-o", str(out), "--scheduler", address],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
 @pytest.mark.slow
 def test_local_cluster_from_the_parameter_file_matches_jobs_1_and_a_bad_file_fails_alone(tmp_path, small_batch):
     shots, refs = small_batch["shots"], ["--flat", str(small_batch["flat"]), "--dark", str(small_batch["dark"]), "--dicom"]
@@ -185,9 +192,7 @@ def test_a_killed_worker_loses_nothing(tmp_path, slow_batch):
     shots, refs = slow_batch["shots"], ["--flat", str(slow_batch["flat"]), "--dark", str(slow_batch["dark"])]
     out = tmp_path / "out"
     with _external_cluster(tmp_path, 2) as (address, _, client):
-        run = subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", "run", *map(str, shots), *refs,
-                                "-o", str(out), "--scheduler", address],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        run = _start_run(shots, refs, out, address)
         deadline = time.monotonic() + 90
         busy = []
         while not busy:
@@ -215,9 +220,7 @@ def test_a_lost_scheduler_ends_the_run_with_a_clear_message(tmp_path, slow_batch
     shots, refs = slow_batch["shots"], ["--flat", str(slow_batch["flat"]), "--dark", str(slow_batch["dark"])]
     out = tmp_path / "out"
     with _external_cluster(tmp_path, 1) as (address, scheduler, _):
-        run = subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", "run", *map(str, shots), *refs,
-                                "-o", str(out), "--scheduler", address],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        run = _start_run(shots, refs, out, address)
         deadline = time.monotonic() + 90
         while not (out.exists() and list(out.glob("*.png.json"))):
             assert time.monotonic() < deadline and run.poll() is None, "no file finished"

@@ -17,12 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scenarios.corpus import clipped_fraction, data_dir, make_scenario
+from scenarios.corpus import clipped_fraction, make_scenario
 
 from napari_dslrxr.core.io import read_image, write_tiff
-
-pytestmark = pytest.mark.realdata
-
 
 def _dslrxr(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *args], capture_output=True, text=True,
@@ -30,9 +27,11 @@ def _dslrxr(*args: str) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def have_data():
-    if not (data_dir() / "cr_dicom").is_dir():
-        pytest.skip(f"real data folder {data_dir()} is absent (set DSLRXR_DATA)")
+def have_data(shared_data):
+    """The real CR radiographs the scenarios are made of (through ``shared_data``: the tests
+    that use them get the ``realdata`` marker; the edge-sample test needs no real data)."""
+    if not (shared_data / "cr_dicom").is_dir():
+        pytest.skip(f"{shared_data / 'cr_dicom'} is absent")
 
 
 def _write_scenario(folder: Path, seed: int):

@@ -75,9 +75,6 @@ def test_nothing_is_cut_at_the_dock_width(docked, qtbot):
         titles = [bar.tabText(i) for i in range(bar.count())]
         assert "Flat field" in titles and "Contrast" in titles, titles
     for name, container in widgets.items():
-        dock = container.native.parent()
-        while dock is not None and not hasattr(dock, "raise_") or type(dock).__name__ == "QScrollArea":
-            dock = dock.parent()
         container.native.window().raise_()
         for i in range(bars[0].count()):
             if bars[0].tabText(i) == name:

@@ -30,6 +30,9 @@ MAX_BLANKED = 0.01  # share of the anatomy outside the region (filled, not shown
 MAX_CLIPPED = 0.01  # share of the anatomy at the display's black or white end
 MIN_POLARITY_R = 0.3  # correlation of the display with the true attenuation
 MAX_FLAT_LEFT = 0.5  # share of the flat-field pattern left (no flat frame: 0.7-1.6)
+#: Median over the corpus, starved frames aside (0.035 now): a flat corrected three quarters
+#: of the way leaves 0.26 (only 2 of 37 scenarios above the per-scenario bound), half-way 0.5.
+MAX_MEDIAN_FLAT_LEFT = 0.2
 
 
 def _run(seed: int) -> tuple[dict, dict, object]:
@@ -42,10 +45,11 @@ def _run(seed: int) -> tuple[dict, dict, object]:
 def _check(seeds) -> dict:
     if not (data_dir() / "cr_dicom").is_dir():
         pytest.skip(f"real data folder {data_dir()} is absent (set DSLRXR_DATA)")
-    rows, problems = [], []
+    rows, problems, starved = [], [], []
     for seed in seeds:
         figures, info, result = _run(seed)
         rows.append(figures)
+        starved.append(info["exposure"] == "starved")
         warned = any(w.startswith("region: no screen found") for w in result.results["warnings"])
         where = f"seed {seed} ({info['source']} {info['layout']} {info['exposure']} room {info['room']})"
         if figures["blanked"] > MAX_BLANKED:
@@ -57,7 +61,9 @@ def _check(seeds) -> dict:
         if figures["flat_left"] > MAX_FLAT_LEFT and info["exposure"] != "starved":
             problems.append(f"{where}: {100 * figures['flat_left']:.0f} % of the flat-field pattern left")
         # the sidecar's own clipped fraction is the pipeline's view of the same thing
-        assert 0.0 <= result.results["display"]["clipped_fraction"] <= 0.01
+        reported = result.results["display"]["clipped_fraction"]
+        if not 0.0 <= reported <= MAX_CLIPPED:
+            problems.append(f"{where}: the sidecar reports {100 * reported:.1f} % clipped")
     summary = {key: np.array([r[key] for r in rows]) for key in rows[0]}
     print(f"\nscenario corpus, {len(rows)} scenarios:")
     for key, values in summary.items():
@@ -65,6 +71,7 @@ def _check(seeds) -> dict:
               f"max {values.max():.4f}  min {values.min():.4f}")
     print(f"  clipped > 1 %: {int(np.sum(summary['clipped'] > MAX_CLIPPED))} (each with a warning)")
     assert not problems, "\n".join(problems)
+    summary["starved"] = np.array(starved)
     return summary
 
 
@@ -74,6 +81,8 @@ def test_corpus_invariants():
     assert len(summary["blanked"]) >= 50
     # most anatomy is shown unclipped; the rare clipped scenarios were announced
     assert np.mean(summary["clipped"] <= MAX_CLIPPED) >= 0.9
+    exposed = summary["flat_left"][~summary["starved"]]
+    assert np.median(exposed) <= MAX_MEDIAN_FLAT_LEFT, np.median(exposed)
 
 
 def test_flat_pattern_metric_catches_a_missing_flat():
