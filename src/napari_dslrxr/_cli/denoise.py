@@ -49,13 +49,9 @@ def _results(result) -> dict:
 def impulse_params(config: Path | None = None, *, passes: str | None = None, **overrides):
     """The ``[impulse]`` parameters of ``config`` (defaults without one), with the command
     line's options (those not None) on top; every value is checked as the file's are."""
-    from ..core.params import PipelineParams, load_params, params_from_dict, params_to_dict
+    from ..core.params import load_section
 
-    params = load_params(config) if config is not None else PipelineParams()
-    section = params_to_dict(params)["impulse"]
-    section.update(parse_passes(passes))
-    section.update({k: v for k, v in overrides.items() if v is not None})
-    return params_from_dict({"impulse": section}).impulse
+    return load_section(config, "impulse", **parse_passes(passes), **overrides)
 
 
 def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, space: str | None = None,

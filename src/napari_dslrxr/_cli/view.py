@@ -22,14 +22,18 @@ READER_RGB = "napari-dslrxr.get_reader"
 DOCK_WIDTH_PX = 470
 
 
-def plugin_widget_names() -> list[str]:
-    """Display names of the widgets the manifest declares, in manifest order."""
+def _manifest():
+    """The plugin's npe2 manifest (napari.yaml) as the plugin manager knows it."""
     from npe2 import PluginManager
 
     manager = PluginManager.instance()
     manager.discover()
-    manifest = manager.get_manifest(PLUGIN_NAME)
-    return [w.display_name for w in (manifest.contributions.widgets or [])]
+    return manager.get_manifest(PLUGIN_NAME)
+
+
+def plugin_widget_names() -> list[str]:
+    """Display names of the widgets the manifest declares, in manifest order."""
+    return [w.display_name for w in (_manifest().contributions.widgets or [])]
 
 
 def check_files(files: list[Path]) -> list[Path]:
@@ -73,12 +77,7 @@ def populate_viewer(viewer: napari.Viewer, files: list[Path], *, cfa_planes: boo
 
 def reader_patterns() -> list[str]:
     """The file name patterns of the plugin's reader, as the manifest declares them."""
-    from npe2 import PluginManager
-
-    manager = PluginManager.instance()
-    manager.discover()
-    manifest = manager.get_manifest(PLUGIN_NAME)
-    return [pattern for reader in (manifest.contributions.readers or []) for pattern in reader.filename_patterns]
+    return [pattern for reader in (_manifest().contributions.readers or []) for pattern in reader.filename_patterns]
 
 
 def prefer_plugin_reader() -> dict[str, str]:

@@ -344,6 +344,48 @@ def remove_layer(viewer: napari.Viewer, name: str) -> bool:
     return False
 
 
+class LivePreviewMixin:
+    """Live preview of a stage widget: one preview worker at a time, the newest settings
+    computed once it is done, and the preview layer removed when the preview is turned off or
+    another image is chosen.
+
+    The widget provides ``_viewer``, ``_image`` (layer combo), ``_live`` (check box) and
+    ``_start_preview()`` (starts the worker with ``on_finished=self._preview_done`` and sets
+    ``_preview_layer`` when it shows the result), and calls :meth:`_init_live_preview`.
+    """
+
+    def _init_live_preview(self) -> None:
+        self._preview_worker = None
+        self._preview_pending = False
+        self._preview_layer: str | None = None
+        self._live.changed.connect(self._live_toggled)
+        self._image.changed.connect(self._drop_preview)
+
+    def _live_toggled(self, on: bool) -> None:
+        if not on:
+            self._drop_preview()
+
+    def _drop_preview(self, *_args) -> None:
+        """Remove the preview layer (preview turned off, or another image chosen)."""
+        if self._preview_layer is not None:
+            remove_layer(self._viewer, self._preview_layer)
+            self._preview_layer = None
+
+    def update_preview(self) -> None:
+        """Recompute the preview (no-op unless live preview is on and an image is chosen)."""
+        if not self._live.value or self._image.value is None:
+            return
+        if self._preview_worker is not None and not self._preview_worker.dslrxr_finished:
+            self._preview_pending = True  # compute the newest settings when this one is done
+            return
+        self._start_preview()
+
+    def _preview_done(self) -> None:
+        if self._preview_pending:
+            self._preview_pending = False
+            self.update_preview()
+
+
 # --------------------------------------------------------------------------- layers
 
 

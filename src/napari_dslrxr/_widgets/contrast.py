@@ -37,7 +37,7 @@ from ..core.params import PipelineParams
 from ..core.pipeline import apply_display_stages, process_frame, scale_display_radiograph
 from ..core.stages.contrast import ContrastParams
 from ..core.stages.dynamic_range import DynamicRangeParams
-from ._common import (JobPanel, debounced, guarded, param_widget, readout_label, remove_layer,
+from ._common import (JobPanel, LivePreviewMixin, debounced, guarded, param_widget, readout_label,
                       restore_defaults_button, run_in_worker, show_layer)
 from ._registry import register_stage_widget
 
@@ -138,7 +138,7 @@ def layer_input_kind(layer) -> InputKind:
     return decide_input_kind(meta.get("format"), meta.get("file_metadata"), np.asarray(layer.data))
 
 
-class ContrastWidget(Container):
+class ContrastWidget(LivePreviewMixin, Container):
     """Latitude, detail and bone-contrast sliders with a live preview, and a full-size apply."""
 
     SECTION = "contrast"  # also saves/loads [dynamic_range]
@@ -170,17 +170,13 @@ class ContrastWidget(Container):
                                   *self._job.widgets, self._readout, self._restore])
         self._base = defaults  # keeps the fields without a slider (and the other sections)
         self._prepared: tuple | None = None  # (key, PreparedInput)
-        self._preview_worker = None
-        self._preview_pending = False
-        self._preview_layer: str | None = None
         self.last_preview_s: float | None = None
         self.preview: np.ndarray | None = None
         self.result: np.ndarray | None = None
         trigger = debounced(self, self.update_preview, _DEBOUNCE_MS)
         for widget in (*self._sliders.values(), self._live, self._kind):
             widget.changed.connect(trigger)
-        self._live.changed.connect(self._live_toggled)
-        self._image.changed.connect(self._drop_preview)
+        self._init_live_preview()
         self._image.changed.connect(self._input_changed)
         self._image.changed.connect(trigger)
         self._apply.changed.connect(self.run)
@@ -237,25 +233,9 @@ class ContrastWidget(Container):
         self._prepared = ((id(layer), id(layer.data), kind, self.preview_max_pixels, repr(self._base.region)),
                           prepared)
 
-    # -- live preview -------------------------------------------------------------------------------
-    def _live_toggled(self, on: bool) -> None:
-        if not on:
-            self._drop_preview()
-
-    def _drop_preview(self, *_args) -> None:
-        """Remove the preview layer (preview turned off, or another image chosen)."""
-        if self._preview_layer is not None:
-            remove_layer(self._viewer, self._preview_layer)
-            self._preview_layer = None
-
-    def update_preview(self) -> None:
-        """Recompute the preview (no-op unless live preview is on and an image is chosen)."""
-        if not self._live.value or self._image.value is None:
-            return
-        if self._preview_worker is not None and not self._preview_worker.dslrxr_finished:
-            self._preview_pending = True
-            return
-        self._start(full=False)
+    # -- live preview (LivePreviewMixin) ----------------------------------------------------------
+    def _start_preview(self):
+        return self._start(full=False)
 
     @guarded("contrast")
     def run(self):
@@ -287,11 +267,6 @@ class ContrastWidget(Container):
                                on_returned=returned, on_finished=self._preview_done)
         self._preview_worker = worker
         return worker
-
-    def _preview_done(self) -> None:
-        if self._preview_pending:
-            self._preview_pending = False
-            self.update_preview()
 
     def _apply_done(self) -> None:
         self._apply.enabled = True

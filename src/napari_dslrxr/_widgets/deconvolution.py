@@ -26,8 +26,8 @@ from ..core.errors import ParameterError
 from ..core.param_fields import field_info
 from ..core.params import DeblurParams
 from ..core.psf import load_psf
-from ._common import (JobPanel, debounced, guarded, notify_info, param_tooltip, param_widget, readout_label,
-                      remove_layer, restore_defaults_button, robust_limits, run_in_worker, show_layer,
+from ._common import (JobPanel, LivePreviewMixin, debounced, guarded, notify_info, param_tooltip, param_widget,
+                      readout_label, restore_defaults_button, robust_limits, run_in_worker, show_layer,
                       viewer_camera, visible_region)
 from ._registry import register_stage_widget
 
@@ -53,7 +53,7 @@ def preview_region(image: np.ndarray, kernel: np.ndarray, rows: slice, cols: sli
     return deconvolve(crop, kernel, method=PREVIEW_METHOD[method], reg=reg)
 
 
-class DeconvolutionWidget(Container):
+class DeconvolutionWidget(LivePreviewMixin, Container):
     """Regularisation slider with a live preview of the visible region, and a full run."""
 
     SECTION = "deblur"
@@ -105,15 +105,11 @@ class DeconvolutionWidget(Container):
         self.result: np.ndarray | None = None
         self.last_preview: dict | None = None
         self._kernel_cache: tuple | None = None
-        self._preview_worker = None
-        self._preview_pending = False
-        self._preview_layer: str | None = None
         self._trigger_preview = debounced(self, self.update_preview, _DEBOUNCE_MS)
         for widget in (self._reg, self._method, self._live, self._image, self._kernel_layer, self._psf_file,
                        self._sod, self._sdd):
             widget.changed.connect(self._trigger_preview)
-        self._live.changed.connect(self._live_toggled)
-        self._image.changed.connect(self._drop_preview)
+        self._init_live_preview()
         self._auto.changed.connect(self.estimate)
         self._apply.changed.connect(self.run)
         camera = viewer_camera(viewer)
@@ -183,25 +179,6 @@ class DeconvolutionWidget(Container):
             self._readout.value = self._job.status.value
 
     # -- live preview -----------------------------------------------------------------------------
-    def _live_toggled(self, on: bool) -> None:
-        if not on:
-            self._drop_preview()
-
-    def _drop_preview(self, *_args) -> None:
-        """Remove the preview layer (preview turned off, or another image chosen)."""
-        if self._preview_layer is not None:
-            remove_layer(self._viewer, self._preview_layer)
-            self._preview_layer = None
-
-    def update_preview(self) -> None:
-        """Recompute the preview of the visible region (no-op unless live preview is on)."""
-        if not self._live.value or self._image.value is None:
-            return
-        if self._preview_worker is not None and not self._preview_worker.dslrxr_finished:
-            self._preview_pending = True  # compute the newest settings when this one is done
-            return
-        self._start_preview()
-
     @guarded("deconvolution preview")
     def _start_preview(self) -> None:
         layer = self._image_layer()
@@ -215,11 +192,6 @@ class DeconvolutionWidget(Container):
             preview_region, image, kernel, rows, cols, method=method, reg=reg, desc="deconvolution preview", progress_bar=False,
             on_returned=lambda out: self._show_preview(layer, out, rows, cols, method, reg),
             on_finished=self._preview_done)
-
-    def _preview_done(self) -> None:
-        if self._preview_pending:
-            self._preview_pending = False
-            self.update_preview()
 
     def _show_preview(self, layer, out: np.ndarray, rows: slice, cols: slice, method: str, reg: float) -> None:
         if not self._live.value or layer is not self._image.value:
