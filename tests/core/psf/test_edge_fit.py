@@ -20,6 +20,9 @@ TRUTH = PSFModel(pixel_pitch_mm=PITCH_MM, source_fwhm_x_mm=0.02, source_fwhm_y_m
 # Two object heights (ODD/SOD = 2 and 0.5), a vertical and a horizontal edge at each, tilted 2-4 deg.
 SPECS = [(50.0, 3.0), (50.0, 92.5), (100.0, -2.0), (100.0, 273.5)]
 NOISE = 0.006
+#: These tests check the recovery of the SABER parameters: fit the model family the truth is drawn
+#: from (the generalised MTF-defined core is checked in test_detector_family.py).
+LEGACY = {"detector_core": "exponential_power"}
 
 
 def _relative_l2(a, b):
@@ -41,7 +44,7 @@ def _edges(rng, size=96, noise=NOISE, specs=SPECS):
 def fitted():
     rng = np.random.default_rng(20261122)
     edges = _edges(rng)
-    return edges, fit_edges(edges, PITCH_MM)
+    return edges, fit_edges(edges, PITCH_MM, **LEGACY)
 
 
 def test_synthesis_matches_independent_2d_kernel_projection():
@@ -67,6 +70,28 @@ def test_gradient_is_exact_against_finite_differences(rng):
         p.keep = rng.random(p.values.size) > 0.05
     problem = edge_fit._JointProblem(prepared, 1.0, True, False, 256.0, 1 / 16, NOISE, 16.0)
     theta = np.array([math.log(2.2), math.log(2.8), math.log(1.3), math.log(25.0), 0.87]
+                     + sum([[p.offset_px + 0.2, 0.4] for p in prepared], []))
+    _, grad = problem.cost_and_gradient(theta)
+    numeric = np.zeros_like(theta)
+    for k in range(theta.size):
+        h = 1e-6 * max(1.0, abs(theta[k]))
+        up, down = theta.copy(), theta.copy()
+        up[k] += h
+        down[k] -= h
+        numeric[k] = (problem.cost_and_gradient(up)[0] - problem.cost_and_gradient(down)[0]) / (2 * h)
+    np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-7 * np.abs(numeric).max())
+
+
+@pytest.mark.parametrize("with_tail", [False, True])
+def test_gradient_is_exact_for_the_generalised_core(rng, with_tail):
+    edges = _edges(rng, size=64)
+    prepared = [edge_fit._prepare(e, i, True) for i, e in enumerate(edges)]
+    for p in prepared:
+        p.weight = rng.uniform(0.3, 3.0, p.values.size)
+    problem = edge_fit._JointProblem(prepared, 2.0, True, False, 256.0, 1 / 16, NOISE, 16.0,
+                                     generalised_core=True, with_tail=with_tail)
+    assert problem.global_free == ["sx", "sy", "core", "power", "linnik"] + (["tail", "w"] if with_tail else [])
+    theta = np.array([math.log(2.2), math.log(2.8), math.log(3.0), 1.3, 0.4] + ([math.log(25.0), 0.9] if with_tail else [])
                      + sum([[p.offset_px + 0.2, 0.4] for p in prepared], []))
     _, grad = problem.cost_and_gradient(theta)
     numeric = np.zeros_like(theta)
@@ -129,7 +154,7 @@ def test_flat_dark_normalisation_and_impulses(rng):
         hits = rng.random(counts.shape) < 0.005
         counts[hits] += 2000.0
         counted.append(EdgeImage(counts, e.source_to_object_mm, e.source_to_detector_mm, bright=bright, dark=dark))
-    model = fit_edges(counted, PITCH_MM)
+    model = fit_edges(counted, PITCH_MM, **LEGACY)
     assert model.detector_fwhm_core_mm == pytest.approx(TRUTH.detector_fwhm_core_mm, rel=0.05)
     assert model.source_fwhm_y_mm == pytest.approx(TRUTH.source_fwhm_y_mm, rel=0.05)
     assert sum(e["n_impulses_masked"] for e in model.fit_report["edges"]) > 4 * 0.004 * 96 * 96
@@ -139,7 +164,7 @@ def test_flat_dark_normalisation_and_impulses(rng):
 def test_single_distance_fits_detector_only(rng):
     # Contact radiographs (object on the detector): no source blur, one geometry.
     edges = _edges(rng, specs=[(SDD_MM, 3.0), (SDD_MM, 92.5)])
-    model = fit_edges(edges, PITCH_MM)
+    model = fit_edges(edges, PITCH_MM, **LEGACY)
     assert not model.fit_report["source_fitted"] and "not separable" in model.fit_report["note"]
     assert model.source_fwhm_x_mm == 0.0 and model.source_fwhm_y_mm == 0.0
     assert model.detector_fwhm_core_mm == pytest.approx(TRUTH.detector_fwhm_core_mm, rel=0.03)
@@ -147,12 +172,12 @@ def test_single_distance_fits_detector_only(rng):
     assert model.detector_weight_core == pytest.approx(TRUTH.detector_weight_core, abs=0.02)
     assert model.fit_report["residual_rms"] < 1.02 * NOISE
     with pytest.raises(ParameterError, match="two or more"):
-        fit_edges(edges, PITCH_MM, fit_source=True)
+        fit_edges(edges, PITCH_MM, fit_source=True, **LEGACY)
 
 
 def test_one_orientation_ties_source_axes(rng):
     edges = [e for e in _edges(rng, specs=[(50.0, 3.0), (100.0, -2.0)])]
-    model = fit_edges(edges, PITCH_MM)
+    model = fit_edges(edges, PITCH_MM, **LEGACY)
     assert model.fit_report["source_axes_tied"]
     assert model.source_fwhm_x_mm == model.source_fwhm_y_mm
     assert model.source_fwhm_x_mm == pytest.approx(TRUTH.source_fwhm_x_mm, rel=0.05)
@@ -181,7 +206,7 @@ def test_roi_selects_one_edge(rng):
     img = np.minimum(img, synthesize_edge_image(TRUTH, 100.0, SDD_MM, (96, 160), 180.0, offset_px=-40,
                                                 low=0.02, high=0.97))
     img += rng.normal(0, NOISE, img.shape)
-    model = fit_edges([EdgeImage(img, 100.0, SDD_MM, roi=(0, 0, 96, 80))], PITCH_MM)
+    model = fit_edges([EdgeImage(img, 100.0, SDD_MM, roi=(0, 0, 96, 80))], PITCH_MM, **LEGACY)
     report = model.fit_report["edges"][0]
     assert report["edge_normal_angle_deg"] == pytest.approx(2.0, abs=0.3)
     assert report["residual_rms"] < 1.1 * NOISE
@@ -232,8 +257,8 @@ def test_poisson_noise_is_weighted(rng):
         t = synthesize_edge_image(TRUTH, sod, SDD_MM, (96, 96), angle, offset_px=rng.uniform(-3, 3),
                                   low=0.05, high=0.97)
         edges.append(EdgeImage(rng.poisson(t * counts) / counts, sod, SDD_MM))
-    weighted = fit_edges(edges, PITCH_MM)
-    plain = fit_edges(edges, PITCH_MM, weight_by_noise=False)
+    weighted = fit_edges(edges, PITCH_MM, **LEGACY)
+    plain = fit_edges(edges, PITCH_MM, weight_by_noise=False, **LEGACY)
     assert weighted.fit_report["noise_weighted"] and not plain.fit_report["noise_weighted"]
     for name in ("source_fwhm_x_mm", "source_fwhm_y_mm", "detector_fwhm_core_mm"):
         assert getattr(weighted, name) == pytest.approx(getattr(TRUTH, name), rel=0.05)

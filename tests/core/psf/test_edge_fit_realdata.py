@@ -27,11 +27,13 @@ def niqa_fit(shared_data):
 def test_niqa_fit_is_sane_and_matches_profiles(niqa_fit):
     model, frame, bright, dark = niqa_fit
     report = model.fit_report
-    assert not report["source_fitted"]
-    assert 1.2 < model.detector_fwhm_core_mm < 2.0            # px; sharp scintillator + lens
-    assert model.detector_fwhm_tail_mm > 3 * model.detector_fwhm_core_mm
-    assert 0.8 < model.detector_weight_core < 1.0
-    assert all(np.isfinite(v) and v > 0 for v in model.uncertainty.values())
+    assert not report["source_fitted"] and not model.source_fitted
+    # Generalised core: a stretched exponential (q about 1.2, no Lorentzian part), LSF 2-3.5 px wide.
+    assert report["detector_core"] == "generalised" and model.detector_weight_core == 1.0
+    assert 1.0 < model.detector_core_mtf_power < 1.5 and model.detector_core_mtf_linnik < 0.2
+    assert 2.0 < report["detector_lsf_fwhm_mm"] < 3.5         # px (pitch 1)
+    assert all(np.isfinite(v) and v >= 0 for v in model.uncertainty.values())
+    assert model.uncertainty["detector_core_mtf_scale_mm"] < 0.05 * model.detector_core_mtf_scale_mm
     # Residual near the noise: the noise from the difference of two repeats in the open field and
     # under the plate brackets the per-pixel residual RMS (photon noise differs across the edge).
     assert 0.004 < report["residual_rms"] < 0.0105

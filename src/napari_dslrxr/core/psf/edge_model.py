@@ -10,6 +10,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from ..errors import ParameterError
+from .model import generalised_mtf
 
 #: Default spacing (pixels) of the fine grid on which the ESF is evaluated.
 DEFAULT_ESF_STEP_PX = 1.0 / 16.0
@@ -18,6 +19,9 @@ _WEIGHT_BOUNDS = (0.5, 1.0)
 _TAIL_STEP_PX = 0.5
 _TAIL_FWHM_MIN_PX = 4.0
 _LOG_FWHM_MIN = math.log(1e-3)
+#: Bounds of the generalised core's MTF power ``q`` and Linnik parameter ``u`` in the fit.
+_CORE_POWER_BOUNDS = (0.6, 2.0)
+_CORE_LINNIK_BOUNDS = (0.0, 3.0)
 
 
 
@@ -116,11 +120,13 @@ class _EsfGrid:
 
 
 def _part_otf(grid: _EsfGrid, fwhm: dict, component_fwhm_px: float, m1: float, phi: float,
-              shape_power: float, need_derivatives: bool):
+              shape_power: float, need_derivatives: bool, core_shape: tuple[float, float] | None = None):
     """OTF along the edge normal of ``source * pixel * component`` and its derivatives.
 
     Derivatives are taken w.r.t. the log FWHMs ``sx``, ``sy``, the component's log FWHM
-    (``"component"``) and the normal angle ``phi``.
+    (``"component"``) and the normal angle ``phi``. With ``core_shape = (q, u)`` the component
+    is the generalised core (:func:`~.model.generalised_mtf`) of scale ``component_fwhm_px``,
+    with derivatives w.r.t. its log scale (``"component"``), ``"power"`` and ``"linnik"``.
     """
     f = grid.freq
     kappa = 2.0 * math.log(2.0) ** (1.0 / shape_power)
@@ -128,7 +134,13 @@ def _part_otf(grid: _EsfGrid, fwhm: dict, component_fwhm_px: float, m1: float, p
     fx, fy = fwhm["sx"], fwhm["sy"]
     q = (fx * c) ** 2 + (fy * s) ** 2
     src, src_d = _radial_otf(f * (m1 * math.sqrt(q)) / kappa, shape_power)
-    comp, comp_d = _radial_otf(f * component_fwhm_px / kappa, shape_power)
+    shape_derivs = {}
+    if core_shape is None:
+        comp, comp_d = _radial_otf(f * component_fwhm_px / kappa, shape_power)
+    else:
+        comp, d = generalised_mtf(f * component_fwhm_px, core_shape[0], core_shape[1], derivatives=True)
+        comp_d = d["scale"]
+        shape_derivs = {"power": d["power"], "linnik": d["linnik"]}
     sinc_c, dsinc_c = _sinc_and_derivative(f * c)
     sinc_s, dsinc_s = _sinc_and_derivative(f * s)
     pix = sinc_c * sinc_s
@@ -148,4 +160,6 @@ def _part_otf(grid: _EsfGrid, fwhm: dict, component_fwhm_px: float, m1: float, p
         "component": src_pix * comp_d,
         "phi": src_d_pix_comp * dlog_w["phi"] + src * comp * dpix_dphi,
     }
+    for name, value in shape_derivs.items():
+        derivs[name] = src_pix * value
     return otf, derivs

@@ -9,8 +9,8 @@ import math
 import numpy as np
 
 from .edge_images import _Prepared
-from .edge_model import (_LOG_FWHM_MIN, _TAIL_FWHM_MIN_PX, _TAIL_STEP_PX, _WEIGHT_BOUNDS, _dot, _EsfGrid,
-                         _part_otf, _solve_levels)
+from .edge_model import (_CORE_LINNIK_BOUNDS, _CORE_POWER_BOUNDS, _LOG_FWHM_MIN, _TAIL_FWHM_MIN_PX,
+                         _TAIL_STEP_PX, _WEIGHT_BOUNDS, _dot, _EsfGrid, _part_otf, _solve_levels)
 
 
 class _JointProblem:
@@ -20,10 +20,15 @@ class _JointProblem:
     core part (source * pixel * core) is compact and lives on a fine grid with a short period;
     the tail part (source * pixel * tail, tail FWHM >= 4 px) is smooth and lives on a coarse grid
     whose period covers the widest tail allowed. Both are exact up to the interpolation.
+
+    ``generalised_core``: the core is the MTF-defined generalised core (its log scale, power
+    ``q`` and Linnik ``u`` are fitted) instead of an exponential-power FWHM. ``with_tail``:
+    False fixes the core weight at 1 (no tail part is computed).
     """
 
     def __init__(self, edges: list[_Prepared], shape_power: float, fit_source: bool, tie_source_axes: bool,
-                 tail_fwhm_max_px: float, step_px: float, noise_scale: float, core_fwhm_max_px: float):
+                 tail_fwhm_max_px: float, step_px: float, noise_scale: float, core_fwhm_max_px: float,
+                 generalised_core: bool = False, with_tail: bool = True):
         self.edges = edges
         self.p = shape_power
         half_range = max(float(np.abs(np.hypot(e.x_px, e.y_px)).max()) for e in edges) + 2.0
@@ -38,10 +43,11 @@ class _JointProblem:
         self.fit_source = fit_source
         self.tie = tie_source_axes
         self.noise_scale = noise_scale
-        if fit_source:
-            self.global_free = ["sx", "core", "tail", "w"] if tie_source_axes else ["sx", "sy", "core", "tail", "w"]
-        else:
-            self.global_free = ["core", "tail", "w"]
+        self.generalised = generalised_core
+        self.with_tail = with_tail
+        self.global_free = (["sx"] if tie_source_axes else ["sx", "sy"]) if fit_source else []
+        self.global_free += ["core"] + (["power", "linnik"] if generalised_core else [])
+        self.global_free += ["tail", "w"] if with_tail else []
         self.n_global = len(self.global_free)
         self.n_total_pixels = sum(int(e.keep.sum()) for e in edges)
         self._kept_cache: dict[int, tuple] = {}
@@ -58,8 +64,10 @@ class _JointProblem:
 
     def unpack(self, theta: np.ndarray):
         g = dict(zip(self.global_free, theta[:self.n_global]))
-        fwhm = {"sx": math.exp(g["sx"]) if "sx" in g else 0.0,
-                "core": math.exp(g["core"]), "tail": math.exp(g["tail"]), "w": float(g["w"])}
+        fwhm = {"sx": math.exp(g["sx"]) if "sx" in g else 0.0, "core": math.exp(g["core"]),
+                "tail": math.exp(g["tail"]) if "tail" in g else float("nan"),
+                "w": float(g["w"]) if "w" in g else 1.0,
+                "power": float(g.get("power", 2.0)), "linnik": float(g.get("linnik", 0.0))}
         fwhm["sy"] = math.exp(g["sy"]) if "sy" in g else fwhm["sx"]
         local = theta[self.n_global:].reshape(len(self.edges), 2)
         return fwhm, local
@@ -73,7 +81,12 @@ class _JointProblem:
                 # Source projected onto the detector stays within the fine grid's reach.
                 b.append((_LOG_FWHM_MIN, math.log(self.core_max / max(self.max_m1, 1e-9))))
             elif name == "core":
-                b.append((_LOG_FWHM_MIN, math.log(self.core_max)))
+                # The generalised core's scale is about twice its FWHM (a Gaussian's: 1.9x).
+                b.append((_LOG_FWHM_MIN, math.log(self.core_max * (2.0 if self.generalised else 1.0))))
+            elif name == "power":
+                b.append(_CORE_POWER_BOUNDS)
+            elif name == "linnik":
+                b.append(_CORE_LINNIK_BOUNDS)
             else:
                 b.append((math.log(_TAIL_FWHM_MIN_PX), math.log(self.tail_max)))
         for e in self.edges:
@@ -89,15 +102,21 @@ class _JointProblem:
         d = x * cphi + yv * sphi - offset
         w = fwhm["w"]
         parts = {}
-        for label, grid, width in (("core", self.fine, fwhm["core"]), ("tail", self.coarse, fwhm["tail"])):
-            otf, derivs = _part_otf(grid, fwhm, width, e.magnification_m1, phi, self.p, need_derivatives)
+        specs = [("core", self.fine, fwhm["core"], (fwhm["power"], fwhm["linnik"]) if self.generalised else None)]
+        if self.with_tail:
+            specs.append(("tail", self.coarse, fwhm["tail"], None))
+        for label, grid, width, core_shape in specs:
+            otf, derivs = _part_otf(grid, fwhm, width, e.magnification_m1, phi, self.p, need_derivatives, core_shape)
             esf_grid = grid.esf(otf)
             i0, frac = grid.locate(d)
             e0, e1 = esf_grid[i0], esf_grid[i0 + 1]
             parts[label] = dict(grid=grid, derivs=derivs, i0=i0, frac=frac,
                                 esf=e0 + frac * (e1 - e0), slope=(e1 - e0) / grid.step)
-        esf = w * parts["core"]["esf"] + (1.0 - w) * parts["tail"]["esf"]
-        slope = w * parts["core"]["slope"] + (1.0 - w) * parts["tail"]["slope"]
+        if self.with_tail:
+            esf = w * parts["core"]["esf"] + (1.0 - w) * parts["tail"]["esf"]
+            slope = w * parts["core"]["slope"] + (1.0 - w) * parts["tail"]["slope"]
+        else:
+            esf, slope = parts["core"]["esf"], parts["core"]["slope"]
         low, high = _solve_levels(esf, values, pixel_weight)
         model = low + (high - low) * esf
         return dict(e=e, phi=phi, d=d, esf=esf, slope=slope, model=model, parts=parts, w=w,
@@ -107,7 +126,7 @@ class _JointProblem:
         fwhm, local = self.unpack(theta)
         scale = 1.0 / (self.n_total_pixels * self.noise_scale ** 2)
         cost = 0.0
-        grad_global = dict.fromkeys(("sx", "sy", "core", "tail", "w"), 0.0)
+        grad_global = dict.fromkeys(("sx", "sy", "core", "tail", "w", "power", "linnik"), 0.0)
         grad_local = np.zeros_like(local)
         for j in range(len(self.edges)):
             t = self._edge_terms(j, fwhm, local[j], True)
@@ -118,16 +137,20 @@ class _JointProblem:
             w = t["w"]
             g_phi_grid = 0.0
             for label, weight in (("core", w), ("tail", 1.0 - w)):
-                part = t["parts"][label]
-                if weight == 0.0:
+                part = t["parts"].get(label)
+                if part is None or weight == 0.0:
                     continue
                 r_hat = part["grid"].backproject(part["i0"], part["frac"], wr)
                 k = scale * contrast * weight
                 grad_global["sx"] += k * part["grid"].inner(part["derivs"]["sx"], r_hat)
                 grad_global["sy"] += k * part["grid"].inner(part["derivs"]["sy"], r_hat)
                 grad_global[label] += k * part["grid"].inner(part["derivs"]["component"], r_hat)
+                for shape_name in ("power", "linnik"):
+                    if shape_name in part["derivs"]:
+                        grad_global[shape_name] += k * part["grid"].inner(part["derivs"][shape_name], r_hat)
                 g_phi_grid += k * part["grid"].inner(part["derivs"]["phi"], r_hat)
-            grad_global["w"] += scale * contrast * _dot(wr, t["parts"]["core"]["esf"] - t["parts"]["tail"]["esf"])
+            if self.with_tail:
+                grad_global["w"] += scale * contrast * _dot(wr, t["parts"]["core"]["esf"] - t["parts"]["tail"]["esf"])
             dd_dphi = -t["x"] * math.sin(t["phi"]) + t["y"] * math.cos(t["phi"])
             g_phi = scale * contrast * _dot(wr * t["slope"], dd_dphi) + g_phi_grid
             grad_local[j, 0] = -scale * contrast * _dot(wr, t["slope"])
@@ -158,9 +181,9 @@ class _JointProblem:
             def column(name):
                 total = 0.0
                 for label, weight in (("core", w), ("tail", 1.0 - w)):
-                    part = t["parts"][label]
+                    part = t["parts"].get(label)
                     key = "component" if name == label else name
-                    if key not in part["derivs"] or weight == 0.0:
+                    if part is None or key not in part["derivs"] or weight == 0.0:
                         continue
                     g = part["grid"].derivative(part["derivs"][key])
                     i0, frac = part["i0"], part["frac"]

@@ -10,6 +10,15 @@ reduction in X-ray imaging", IEEE TIP 2020 (see ``docs/algorithms/psf.md``, sect
   (``M = SDD / SOD``), so it vanishes for an object lying on the detector;
 * the detector PSF is geometry independent: ``w * core + (1 - w) * tail``, two isotropic
   components, each normalised to unit sum;
+* the core is either the exponential-power profile above (``detector_core_mtf_scale_mm == 0``,
+  files of format version 1) or, as fitted since format version 2, defined by its radial MTF
+  ``(1 + u (f s)^q)^(-1/u)`` (:func:`generalised_mtf`: scale ``s``, power ``q``, "Linnik"
+  parameter ``u``; ``u = 0`` is the stretched exponential ``exp(-(f s)^q)``, ``q = 2, u = 1``
+  the Lorentzian ``1 / (1 + (f s)^2)``, ``q = 2, u = 0`` a Gaussian and ``q = 2, u = 2/3``
+  SABER's exponential ``exp(-r)``), which real scintillators follow more closely;
+* the focal spot is only part of the model when the edges identified it (``source_fitted``);
+  otherwise its widths are 0 and the detector PSF holds the combined blur at the fitted
+  geometry;
 * the blur kernel of a radiograph is ``source PSF (at its magnification) * detector PSF``.
 
 Kernel sampling
@@ -50,9 +59,75 @@ DELTA_FWHM_PX = 1e-3
 _MAX_SUPERSAMPLING = 41
 
 PSF_FORMAT = "napari-dslrxr psf"
-PSF_FORMAT_VERSION = 1
+PSF_FORMAT_VERSION = 2
+#: Format versions :func:`load_psf` reads (version 1: exponential-power core, source always given).
+READABLE_FORMAT_VERSIONS = (1, 2)
 PARAMETER_NAMES = ("source_fwhm_x_mm", "source_fwhm_y_mm", "detector_fwhm_core_mm",
                    "detector_fwhm_tail_mm", "detector_weight_core")
+#: Parameters of the MTF-defined detector core (format version 2).
+CORE_MTF_NAMES = ("detector_core_mtf_scale_mm", "detector_core_mtf_power", "detector_core_mtf_linnik")
+#: Below this ``u * (f s)^q`` the Linnik MTF and its derivative in ``u`` use their series in ``u``.
+_LINNIK_SERIES_LIMIT = 1e-4
+
+
+def generalised_mtf(x: np.ndarray, power: float, linnik: float, *, derivatives: bool = False):
+    """Radial MTF ``(1 + u x^q)^(-1/u)`` of the generalised detector core (``x = f * scale``).
+
+    A generalised Linnik characteristic function: positive-definite (a PSF that is a positive
+    mixture of stable laws) for ``0 < q <= 2`` and ``u >= 0``. ``u = 0`` is the stretched
+    exponential ``exp(-x^q)`` (the limit), ``u = 1, q = 2`` the Lorentzian ``1 / (1 + x^2)``.
+
+    Parameters
+    ----------
+    x : ndarray
+        Frequency times the scale (``f * s``, dimensionless, >= 0).
+    power, linnik : float
+        ``q`` in ``(0, 2]`` and ``u >= 0``.
+    derivatives : bool
+        Also return ``dM/dlog(s)``, ``dM/dq`` and ``dM/du``.
+
+    Returns
+    -------
+    ndarray, or (ndarray, dict) with keys ``"scale"``, ``"power"``, ``"linnik"``.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        z = np.where(x > 0, x, 0.0) ** power
+        uz = linnik * z
+        small = uz < _LINNIK_SERIES_LIMIT
+        if linnik > 0:
+            log_term = np.where(small, z * (1.0 - 0.5 * uz), np.log1p(uz) / linnik)
+        else:
+            log_term = z
+        mtf = np.exp(-log_term)
+        if not derivatives:
+            return mtf
+        dl_dz = 1.0 / (1.0 + uz)
+        if linnik > 0:
+            exact = (uz / (1.0 + uz) - np.log1p(uz)) / (linnik * linnik)
+            dl_du = np.where(small, -0.5 * z * z + (2.0 / 3.0) * linnik * z ** 3, exact)
+        else:
+            dl_du = -0.5 * z * z
+        log_x = np.where(x > 0, np.log(np.where(x > 0, x, 1.0)), 0.0)
+        dl_dq = dl_dz * z * log_x
+        dl_dscale = dl_dz * power * z
+    derivs = {"scale": -mtf * dl_dscale, "power": -mtf * dl_dq, "linnik": -mtf * np.nan_to_num(dl_du)}
+    return mtf, derivs
+
+
+def exponential_power_mtf(nu: np.ndarray, shape_power: float) -> np.ndarray:
+    """Normalised 2-D Fourier transform of ``exp(-r^p)`` at radial frequency ``nu`` (p = 1 or 2)."""
+    if shape_power == 1.0:
+        return (1.0 + (2.0 * np.pi * nu) ** 2) ** -1.5
+    if shape_power == 2.0:
+        return np.exp(-(np.pi * nu) ** 2)
+    raise ParameterError(f"an analytic MTF needs shape_power 1 or 2, got {shape_power}")
+
+
+def _mtf_cutoff(scale: float, power: float, linnik: float, level: float = 1e-5) -> float:
+    """Frequency (inverse units of ``scale``) above which the generalised MTF is below ``level``."""
+    z = -math.log(level) if linnik <= 0 else (level ** -linnik - 1.0) / linnik
+    return z ** (1.0 / power) / scale
 
 
 def fwhm_to_scale(fwhm: float, shape_power: float) -> float:
@@ -187,7 +262,16 @@ class PSFModel:
     detector_weight_core : float
         Weight ``w`` of the core in ``[0, 1]``; the tail has ``1 - w``.
     shape_power : float
-        Exponential-power ``p`` of every component, in ``(0, 2]`` (1 exponential, 2 Gaussian).
+        Exponential-power ``p`` of every spatially defined component, in ``(0, 2]`` (1
+        exponential, 2 Gaussian).
+    detector_core_mtf_scale_mm, detector_core_mtf_power, detector_core_mtf_linnik : float
+        The detector core defined by its MTF ``(1 + u (f s)^q)^(-1/u)`` (:func:`generalised_mtf`):
+        scale ``s`` (mm, > 0 selects this core; 0 keeps the exponential-power core of FWHM
+        ``detector_fwhm_core_mm``), power ``q`` in ``(0, 2]``, Linnik parameter ``u >= 0``. With
+        this core, ``detector_fwhm_core_mm`` is unused (0; ``null`` in ``psf.json``).
+    source_fitted : bool
+        False when the edges could not identify the focal spot (one object distance, or
+        distances too close): the source widths are then 0 and ``psf.json`` says "not fitted".
     uncertainty : dict
         One-sigma uncertainty per parameter name (same units as the parameter).
     fit_report : dict
@@ -201,11 +285,17 @@ class PSFModel:
     detector_fwhm_tail_mm: float
     detector_weight_core: float
     shape_power: float = 1.0
+    detector_core_mtf_scale_mm: float = 0.0
+    detector_core_mtf_power: float = 2.0
+    detector_core_mtf_linnik: float = 0.0
+    source_fitted: bool = True
     uncertainty: dict = field(default_factory=dict)
     fit_report: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for name in ("pixel_pitch_mm",) + PARAMETER_NAMES + ("shape_power",):
+        if not isinstance(self.source_fitted, (bool, np.bool_)):
+            raise ParameterError(f"PSF parameter source_fitted must be true or false, got {self.source_fitted!r}")
+        for name in ("pixel_pitch_mm",) + PARAMETER_NAMES + ("shape_power",) + CORE_MTF_NAMES:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
                 raise ParameterError(f"PSF parameter {name} must be a number, got {value!r}")
@@ -220,6 +310,11 @@ class PSFModel:
                                  f"got {self.detector_weight_core!r}")
         if not 0 < self.shape_power <= 2:
             raise ParameterError(f"PSF parameter shape_power must be in (0, 2], got {self.shape_power!r}")
+        if not 0 < self.detector_core_mtf_power <= 2:
+            raise ParameterError(f"PSF parameter detector_core_mtf_power must be in (0, 2], "
+                                 f"got {self.detector_core_mtf_power!r}")
+        if not self.source_fitted and (self.source_fwhm_x_mm or self.source_fwhm_y_mm):
+            raise ParameterError("PSF source widths must be 0 when the source is not fitted")
         if not isinstance(self.uncertainty, dict) or not isinstance(self.fit_report, dict):
             raise ParameterError("PSF uncertainty and fit_report must be dictionaries")
 
@@ -230,6 +325,72 @@ class PSFModel:
         factor = magnification_factor(source_to_object_mm, source_to_detector_mm)
         return (self.source_fwhm_x_mm * factor / self.pixel_pitch_mm,
                 self.source_fwhm_y_mm * factor / self.pixel_pitch_mm)
+
+    @property
+    def core_from_mtf(self) -> bool:
+        """True when the detector core is defined by its generalised MTF (format version 2)."""
+        return self.detector_core_mtf_scale_mm > 0
+
+    # -- transfer functions -----------------------------------------------------------------------
+    def detector_mtf(self, frequency_cy_per_mm) -> np.ndarray:
+        """Radial MTF of the detector PSF (core + tail, before the pixel aperture)."""
+        f = np.abs(np.asarray(frequency_cy_per_mm, dtype=np.float64))
+        w = float(self.detector_weight_core)
+        if self.core_from_mtf:
+            core = generalised_mtf(f * self.detector_core_mtf_scale_mm, self.detector_core_mtf_power,
+                                   self.detector_core_mtf_linnik)
+        else:
+            core = self._component_mtf(f, self.detector_fwhm_core_mm)
+        if w >= 1.0:
+            return core
+        return w * core + (1.0 - w) * self._component_mtf(f, self.detector_fwhm_tail_mm)
+
+    def mtf50_cy_per_mm(self) -> float:
+        """Frequency at which the detector MTF falls to 0.5 (cycles/mm; inf when it never does)."""
+        hi = 1.0 / self.pixel_pitch_mm
+        while self.detector_mtf(hi) > 0.5:
+            hi *= 2.0
+            if hi > 1e6 / self.pixel_pitch_mm:
+                return float("inf")
+        lo = 0.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if self.detector_mtf(mid) > 0.5 else (lo, mid)
+        return 0.5 * (lo + hi)
+
+    def detector_lsf_fwhm_mm(self) -> float:
+        """FWHM of the detector's line spread function (before the pixel aperture), mm.
+
+        From the radial MTF by a 1-D cosine transform on a grid 400 steps per MTF50 period;
+        finite for every shape of the family (the 2-D PSF of a Lorentzian-like core has a
+        logarithmic peak, so its own FWHM is not a useful width).
+        """
+        f50 = self.mtf50_cy_per_mm()
+        if not math.isfinite(f50):
+            return 0.0
+        step = 1.0 / (400.0 * f50)
+        n = 2 ** 18
+        lsf = np.fft.irfft(self.detector_mtf(np.fft.rfftfreq(n, d=step)), n)
+        lsf = np.concatenate([lsf[n // 2:], lsf[:n // 2]])     # t = 0 at index n // 2
+        above = np.nonzero(lsf >= 0.5 * lsf[n // 2])[0]
+        return float((above[-1] - above[0] + 1) * step)
+
+    def _component_mtf(self, f: np.ndarray, fwhm_mm: float) -> np.ndarray:
+        kappa = 2.0 * math.log(2.0) ** (1.0 / self.shape_power)
+        return exponential_power_mtf(f * fwhm_mm / kappa, self.shape_power)
+
+    def presampling_mtf(self, frequency_cy_per_mm, source_to_object_mm: float, source_to_detector_mm: float,
+                        normal_angle_rad: float = 0.0) -> np.ndarray:
+        """MTF along one direction of the blur at this geometry including the pixel aperture:
+        what a slanted-edge measurement of an edge with this normal gives (focal spot projected
+        with the magnification x detector x square pixel aperture)."""
+        f = np.abs(np.asarray(frequency_cy_per_mm, dtype=np.float64))
+        c, s = math.cos(normal_angle_rad), math.sin(normal_angle_rad)
+        factor = magnification_factor(source_to_object_mm, source_to_detector_mm)
+        source_width = factor * math.hypot(self.source_fwhm_x_mm * c, self.source_fwhm_y_mm * s)
+        pitch = self.pixel_pitch_mm
+        return (self._component_mtf(f, source_width) * self.detector_mtf(f)
+                * np.abs(np.sinc(f * pitch * c) * np.sinc(f * pitch * s)))
 
     # -- kernels --------------------------------------------------------------------------------
     def source_kernel(self, source_to_object_mm: float, source_to_detector_mm: float, *,
@@ -308,7 +469,13 @@ class PSFModel:
     def _detector_kernel_f64(self, cap: int) -> np.ndarray:
         weight = float(self.detector_weight_core)
         components = []
-        for fwhm_mm, w in ((self.detector_fwhm_core_mm, weight), (self.detector_fwhm_tail_mm, 1.0 - weight)):
+        spatial = [(self.detector_fwhm_tail_mm, 1.0 - weight)]
+        if self.core_from_mtf:
+            if weight > 0:
+                components.append((weight, self._mtf_core_kernel_f64(cap)))
+        else:
+            spatial.insert(0, (self.detector_fwhm_core_mm, weight))
+        for fwhm_mm, w in spatial:
             if w <= 0:
                 continue
             fwhm_px = fwhm_mm / self.pixel_pitch_mm
@@ -324,11 +491,51 @@ class PSFModel:
             total += w * _centre_pad(k, (size, size))
         return total
 
+    def _mtf_core_kernel_f64(self, cap: int) -> np.ndarray:
+        """Pixel-area-integrated kernel of the MTF-defined core, by Fourier synthesis.
+
+        The radial MTF times the pixel aperture ``sinc(f_x) sinc(f_y)`` is sampled on a grid
+        ``n`` times finer than the pixels (``n`` odd, so that frequencies up to ``n / 2``
+        cycles/pixel, where the MTF has fallen below 1e-5, are kept; at most 41 and at most
+        2047 samples a side), inverse transformed, and read at the pixel centres. The support
+        reaches 30 scales (the heavy tail of a stretched exponential with ``q`` near 1 keeps
+        about 0.3 % of its line spread beyond it) and at least 8 pixels; it is then cropped to
+        the smallest square holding all but 1e-4 of the kernel's sum.
+        """
+        scale_px = self.detector_core_mtf_scale_mm / self.pixel_pitch_mm
+        q, u = self.detector_core_mtf_power, self.detector_core_mtf_linnik
+        radius = int(min(max(math.ceil(30.0 * scale_px), 8), cap))
+        size = 2 * radius + 1
+        cutoff = _mtf_cutoff(scale_px, q, u)
+        n = int(min(max(math.ceil(2.0 * cutoff), 1), _MAX_SUPERSAMPLING, max(2047 // size, 1)))
+        n += 1 - n % 2
+        fine = size * n
+        fy = np.fft.fftfreq(fine, d=1.0 / n)[:, None]
+        fx = np.fft.rfftfreq(fine, d=1.0 / n)[None, :]
+        spectrum = generalised_mtf(np.hypot(fx, fy) * scale_px, q, u) * np.sinc(fx) * np.sinc(fy)
+        psf = np.fft.fftshift(np.fft.irfft2(spectrum, s=(fine, fine))[::n, ::n])
+        psf /= psf.sum()
+        # Sum inside the centred square of each radius: the last radius missing > 1e-4 sets the crop.
+        ring = np.maximum.outer(np.abs(np.arange(-radius, radius + 1)), np.abs(np.arange(-radius, radius + 1)))
+        inside = np.cumsum(np.bincount(ring.ravel(), weights=psf.ravel(), minlength=radius + 1))
+        keep = int(np.argmax(inside >= 1.0 - 1e-4)) if inside[-1] >= 1.0 - 1e-4 else radius
+        return _centre_crop(psf, max(keep, 1))
+
     # -- serialisation ----------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        """Plain-JSON description (the content of ``psf.json``)."""
+        """Plain-JSON description (the content of ``psf.json``).
+
+        The source widths are ``null`` (with ``"source": "not fitted"``) when the edges did not
+        identify the focal spot.
+        """
         record = {"format": PSF_FORMAT, "format_version": PSF_FORMAT_VERSION}
-        record.update({k: (float(v) if not isinstance(v, dict) else v) for k, v in asdict(self).items()})
+        for k, v in asdict(self).items():
+            record[k] = v if isinstance(v, (dict, bool)) else float(v)
+        if not self.source_fitted:
+            record["source_fwhm_x_mm"] = record["source_fwhm_y_mm"] = None
+            record["source"] = "not fitted"
+        if self.core_from_mtf:
+            record["detector_fwhm_core_mm"] = None   # the core is given by its MTF
         return record
 
 
@@ -368,14 +575,24 @@ def load_psf(path: str | os.PathLike) -> PSFModel:
     record = read_structured_file(path, what="PSF file", fmt="json")
     if record.get("format") != PSF_FORMAT:
         raise InputError(path, f"not a PSF file (expected \"format\": \"{PSF_FORMAT}\")")
-    if record.get("format_version") != PSF_FORMAT_VERSION:
-        raise InputError(path, f"unsupported format_version {record.get('format_version')!r} "
-                               f"(this version reads {PSF_FORMAT_VERSION})")
+    version = record.get("format_version")
+    if isinstance(version, bool) or version not in READABLE_FORMAT_VERSIONS:
+        raise InputError(path, f"unsupported format_version {version!r} "
+                               f"(this version reads {', '.join(map(str, READABLE_FORMAT_VERSIONS))})")
     kwargs = {}
-    for key in ("pixel_pitch_mm",) + PARAMETER_NAMES + ("shape_power",):
+    source_fitted = record.get("source_fitted", True)
+    if not isinstance(source_fitted, bool):
+        raise InputError(path, f"key 'source_fitted' must be true or false, got {source_fitted!r}")
+    kwargs["source_fitted"] = source_fitted
+    keys = ("pixel_pitch_mm",) + PARAMETER_NAMES + ("shape_power",) + (CORE_MTF_NAMES if version >= 2 else ())
+    for key in keys:
         if key not in record:
             raise InputError(path, f"missing key {key!r}")
         value = record[key]
+        if value is None and ((key.startswith("source_fwhm") and not source_fitted)
+                              or key == "detector_fwhm_core_mm"):
+            kwargs[key] = 0.0
+            continue
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise InputError(path, f"key {key!r} must be a number, got {value!r}")
         kwargs[key] = float(value)
