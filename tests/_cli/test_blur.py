@@ -44,8 +44,11 @@ def test_psf_fit_then_kernel(edge_folder, tmp_path, capsys):
     assert main(["psf", "fit", str(edge_folder / "edges.toml"), "-o", str(psf_path)]) == 0
     assert "residual RMS" in capsys.readouterr().out
     model = load_psf(psf_path)
-    assert model.source_fwhm_y_mm == pytest.approx(0.03, rel=0.05)
-    assert model.detector_fwhm_core_mm == pytest.approx(0.015, rel=0.05)
+    assert model.source_fitted and model.source_fwhm_y_mm == pytest.approx(0.03, rel=0.05)
+    # The generalised core follows SABER's exponential core + tail: MTF within 0.03 up to Nyquist.
+    assert model.core_from_mtf
+    f = np.linspace(0.0, 50.0, 51)   # cycles/mm, Nyquist 50
+    assert np.abs(model.detector_mtf(f) - TRUTH.detector_mtf(f)).max() < 0.03
     sidecar = json.loads((tmp_path / "psf.json.json").read_text())
     assert sidecar["stage"] == "psf fit" and len(sidecar["inputs"]) == 7   # config + 4 edges + flat + dark
     assert sidecar["results"]["residual_rms"] < 0.0065
@@ -98,3 +101,20 @@ def test_psf_kernel_errors(tmp_path, capsys):
     assert main(["psf", "kernel", str(bad), "--source-to-object-mm", "75", "--source-to-detector-mm", "150",
                  "-o", str(bad)]) == 2
     assert load_psf(bad) == TRUTH
+
+
+def test_psf_fit_one_distance_says_source_not_fitted(edge_folder, tmp_path, capsys):
+    """One object distance: psf.json and the output say "not fitted", never "0 x 0 mm"."""
+    text = (edge_folder / "edges.toml").read_text()
+    one = "\n[[edges]]".join(part for part in text.split("\n[[edges]]") if "= 100.0" not in part)
+    config = edge_folder / "one_distance.toml"
+    config.write_text(one)
+    psf_path = tmp_path / "psf.json"
+    assert main(["psf", "fit", str(config), "-o", str(psf_path)]) == 0
+    out = capsys.readouterr().out
+    assert "focal spot: not fitted" in out and "0 x 0" not in out
+    record = json.loads(psf_path.read_text())
+    assert record["source"] == "not fitted" and record["source_fwhm_x_mm"] is None
+    assert record["source_fitted"] is False and record["format_version"] == 2
+    model = load_psf(psf_path)
+    assert not model.source_fitted and model.source_fwhm_x_mm == 0.0

@@ -4,6 +4,7 @@
 radiographs listed in CONFIG (see :func:`napari_dslrxr.core.psf.edge_fit.load_edge_config`)::
 
     pixel_pitch_mm = 0.05
+    detector_core = "generalised"  # optional; or "exponential_power" (SABER's core + tail)
     [[edges]]
     image = "edge_h_near.tif"
     source_to_object_mm = 400
@@ -60,6 +61,7 @@ def register(app: typer.Typer) -> None:
         io.check_not_an_input(output, inputs)
         t_load = time.perf_counter() - t0
         model = edge_fit.fit_edges(cfg.edges, cfg.pixel_pitch_mm, shape_power=cfg.shape_power,
+                                   detector_core=cfg.detector_core, detector_tail=cfg.detector_tail,
                                    outlier_sigma=outlier_sigma or None)
         t_fit = time.perf_counter() - t0 - t_load
         save_psf(model, output, inputs=inputs)
@@ -67,17 +69,16 @@ def register(app: typer.Typer) -> None:
         provenance.write_sidecar(
             output, stage="psf fit",
             parameters={"config": str(config), "pixel_pitch_mm": cfg.pixel_pitch_mm,
-                        "shape_power": cfg.shape_power, "outlier_sigma": outlier_sigma,
+                        "shape_power": cfg.shape_power, "detector_core": cfg.detector_core,
+                        "detector_tail": cfg.detector_tail, "outlier_sigma": outlier_sigma,
                         "edges": [{"image": e.name, "source_to_object_mm": e.source_to_object_mm,
                                    "source_to_detector_mm": e.source_to_detector_mm,
                                    "roi": list(e.roi) if e.roi else None} for e in cfg.edges]},
             inputs=inputs, timings_s={"load": t_load, "fit": t_fit},
             results={k: report[k] for k in ("residual_rms", "noise_rms_estimate", "iterations",
                                             "converged", "n_images", "n_outliers_masked")})
-        typer.echo(f"wrote {output}: source FWHM {model.source_fwhm_x_mm:.4g} x {model.source_fwhm_y_mm:.4g} mm, "
-                   f"detector core {model.detector_fwhm_core_mm:.4g} mm, tail {model.detector_fwhm_tail_mm:.4g} mm "
-                   f"(weight {1 - model.detector_weight_core:.3g}); residual RMS {report['residual_rms']:.4g} "
-                   f"(noise {report['noise_rms_estimate']:.4g})")
+        typer.echo(f"wrote {output}: " + "; ".join(model.describe())
+                   + f"; residual RMS {report['residual_rms']:.4g} (noise {report['noise_rms_estimate']:.4g})")
 
     @psf_app.command("kernel")
     def kernel_cmd(

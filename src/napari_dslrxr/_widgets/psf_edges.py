@@ -65,28 +65,10 @@ def rectangles_to_rois(shapes: napari.layers.Shapes, image: napari.layers.Image)
     return rois
 
 
-def _with_sd(value: float, sd: float | None, unit: str = "") -> str:
-    """``value ± sd unit``, or "not determined" when the uncertainty exceeds the value."""
-    if sd is not None and np.isfinite(sd) and sd > abs(value):
-        return f"not determined by these ROIs ({value:.3g} ± {sd:.2g}{unit})"
-    return f"{value:.3g}" + (f" ± {sd:.2g}" if sd is not None and np.isfinite(sd) else "") + unit
-
-
 def fit_summary(model: PSFModel) -> str:
     """The read-out of a fit: what was fitted, with uncertainties, and what was not."""
-    unc, report = model.uncertainty, model.fit_report
-    lines = []
-    if report.get("source_fitted", True):
-        lines.append(f"focal spot FWHM x, y: {_with_sd(model.source_fwhm_x_mm, unc.get('source_fwhm_x_mm'))}, "
-                     f"{_with_sd(model.source_fwhm_y_mm, unc.get('source_fwhm_y_mm'), ' mm')}")
-        detector = "detector"
-    else:
-        lines.append("focal spot: not fitted (all ROIs at one source-object distance; add ROIs on an image at "
-                     "another distance to separate it)")
-        detector = "combined blur (focal spot + detector)"
-    lines.append(f"{detector} core FWHM: {_with_sd(model.detector_fwhm_core_mm, unc.get('detector_fwhm_core_mm'), ' mm')}")
-    lines.append(f"{detector} tail FWHM: {_with_sd(model.detector_fwhm_tail_mm, unc.get('detector_fwhm_tail_mm'), ' mm')}")
-    lines.append(f"core weight: {_with_sd(model.detector_weight_core, unc.get('detector_weight_core'))}")
+    report = model.fit_report
+    lines = model.describe()
     lines.append(f"residual rms {report.get('residual_rms', float('nan')):.3g} "
                  f"(noise {report.get('noise_rms_estimate', float('nan')):.3g}), "
                  f"{report.get('n_images', 0)} ROIs")

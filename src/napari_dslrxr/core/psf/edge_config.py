@@ -22,6 +22,8 @@ class EdgeConfig:
     edges: list[EdgeImage]
     input_files: list[Path] = field(default_factory=list)
     shape_power: float = 1.0
+    detector_core: str = "generalised"
+    detector_tail: bool | None = None
 
 
 def _number(config: Path, key: str, value, *, positive: bool = True) -> float:
@@ -35,7 +37,9 @@ def _number(config: Path, key: str, value, *, positive: bool = True) -> float:
 def load_edge_config(path: str | os.PathLike) -> EdgeConfig:
     """Read a TOML edge-fit configuration and load its images.
 
-    The file holds ``pixel_pitch_mm`` (mm, > 0), optional ``shape_power`` (1 or 2) and one or more
+    The file holds ``pixel_pitch_mm`` (mm, > 0), optional ``shape_power`` (1 or 2),
+    ``detector_core`` (``"generalised"``, the default, or ``"exponential_power"``) and
+    ``detector_tail`` (true/false; see :func:`~.edge_fit.fit_edges`), and one or more
     ``[[edges]]`` tables with ``image``, ``source_to_object_mm``, ``source_to_detector_mm`` and
     optional ``bright``, ``dark`` (file paths, relative to the config's folder) and
     ``roi = [r0, c0, r1, c1]``.
@@ -50,10 +54,17 @@ def load_edge_config(path: str | os.PathLike) -> EdgeConfig:
 
     config = Path(path)
     record = read_structured_file(config, what="edge configuration")
-    unknown_top = set(record) - {"pixel_pitch_mm", "shape_power", "edges"}
+    unknown_top = set(record) - {"pixel_pitch_mm", "shape_power", "detector_core", "detector_tail", "edges"}
     if unknown_top:
         raise InputError(config, f"unknown key {sorted(unknown_top)[0]!r} (expected pixel_pitch_mm, "
-                                 f"shape_power, [[edges]])")
+                                 f"shape_power, detector_core, detector_tail, [[edges]])")
+    detector_core = record.get("detector_core", "generalised")
+    if detector_core not in ("generalised", "exponential_power"):
+        raise InputError(config, f"detector_core must be \"generalised\" or \"exponential_power\", "
+                                 f"got {detector_core!r}")
+    detector_tail = record.get("detector_tail")
+    if detector_tail is not None and not isinstance(detector_tail, bool):
+        raise InputError(config, f"detector_tail must be true or false, got {detector_tail!r}")
     if "pixel_pitch_mm" not in record:
         raise InputError(config, "missing key 'pixel_pitch_mm'")
     pitch = _number(config, "pixel_pitch_mm", record["pixel_pitch_mm"])
@@ -106,4 +117,5 @@ def load_edge_config(path: str | os.PathLike) -> EdgeConfig:
         dark = load(f"{where}.dark", entry["dark"]) if "dark" in entry else None
         edges.append(EdgeImage(image=image, source_to_object_mm=sod, source_to_detector_mm=sdd,
                                bright=bright, dark=dark, roi=roi, name=str(entry["image"])))
-    return EdgeConfig(path=config, pixel_pitch_mm=pitch, edges=edges, input_files=inputs, shape_power=shape_power)
+    return EdgeConfig(path=config, pixel_pitch_mm=pitch, edges=edges, input_files=inputs, shape_power=shape_power,
+                      detector_core=detector_core, detector_tail=detector_tail)

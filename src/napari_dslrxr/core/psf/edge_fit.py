@@ -180,9 +180,10 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
         SABER's exponential-power profile of power ``shape_power`` (only its FWHM fitted).
     detector_tail : bool, optional
         Fit a long tail (exponential-power, FWHM >= 4 px) beside the core (weight ``1 - w``);
-        False fixes ``w = 1``. Default: False with the generalised core (whose stretched
-        exponentials already carry long tails; a separate tail was not identified on
-        synthetic detectors and made the fit 2-4x slower), True with the exponential-power core.
+        False fixes ``w = 1``. Default with the generalised core: fitted without a tail first,
+        then a score test (:func:`_tail_score_test`) adds the tail only when the residuals ask
+        for one (a tail the data do not identify made the fit 2-4x slower and its weight
+        arbitrary); with the exponential-power core: True.
     fit_source : bool, optional
         Fit the focal spot. Default: when the edges span two or more ``ODD / SOD`` ratios.
         When False the source is fixed to zero and the detector PSF holds the combined blur.
@@ -222,16 +223,130 @@ def fit_edges(edges: Sequence[EdgeImage], pixel_pitch_mm: float, *, shape_power:
     if detector_core not in DETECTOR_CORES:
         raise ParameterError(f"detector_core must be one of {', '.join(DETECTOR_CORES)}, got {detector_core!r}")
     generalised = detector_core == "generalised"
-    if detector_tail is None:
-        detector_tail = not generalised
+    auto_tail = detector_tail is None and generalised
+    with_tail = (not generalised) if detector_tail is None else bool(detector_tail)
     prepared = [_prepare(e, i, mask_impulses) for i, e in enumerate(edges)]
     plan = _plan_fit(prepared, fit_source, tail_fwhm_max_px)
-    theta, noise0 = _starting_point(prepared, plan, generalised, detector_tail)
-    problem = _JointProblem(prepared, shape_power, plan.fit_source, plan.tie, plan.tail_fwhm_max_px, esf_step_px,
-                            noise0, plan.core_fwhm_max_px, generalised_core=generalised, with_tail=detector_tail)
-    run = _optimise(problem, prepared, theta, outlier_sigma=outlier_sigma, weight_by_noise=weight_by_noise,
-                    max_iterations=max_iterations, progress=progress)
-    return _fitted_model(problem, prepared, run, plan, pitch, shape_power)
+    theta, noise0 = _starting_point(prepared, plan, generalised, with_tail)
+
+    def problem_for(fit_src: bool, tie: bool, tail: bool) -> _JointProblem:
+        return _JointProblem(prepared, shape_power, fit_src, tie, plan.tail_fwhm_max_px, esf_step_px, noise0,
+                             plan.core_fwhm_max_px, generalised_core=generalised, with_tail=tail)
+
+    def optimise(problem: _JointProblem, start: np.ndarray, before: _OptimiserRun | None) -> _OptimiserRun:
+        run = _optimise(problem, prepared, start, outlier_sigma=outlier_sigma, weight_by_noise=weight_by_noise,
+                        max_iterations=max_iterations, progress=progress)
+        if before is not None:
+            run.iterations += before.iterations
+            run.evaluations += before.evaluations
+            run.n_rejected += before.n_rejected
+        return run
+
+    problem = problem_for(plan.fit_source, plan.tie, with_tail)
+    run = optimise(problem, theta, None)
+    tail_note = None
+    if auto_tail:
+        # Add the tail only when the data ask for it (score test at w = 1), then refit with it.
+        tail_start, score = _tail_score_test(problem, problem_for(plan.fit_source, plan.tie, True), run.theta)
+        tail_note = f"tail score {score:.3g} (threshold {_tail_score_threshold(problem):.3g})"
+        if tail_start is not None:
+            problem = problem_for(plan.fit_source, plan.tie, True)
+            run = optimise(problem, tail_start, run)
+    source_note = None
+    if plan.fit_source and fit_source is None:
+        source_note = _unidentified_source(problem, prepared, run.theta, plan)
+        if source_note is not None:
+            # The distances do not pin the focal spot down: refit without it (warm start), so
+            # that the detector PSF holds the combined blur and no made-up spot is reported.
+            plan.fit_source, plan.tie = False, False
+            start = np.delete(run.theta, range(1 if problem.tie else 2))    # the source widths come first
+            problem = problem_for(False, False, problem.with_tail)
+            run = optimise(problem, start, run)
+    model = _fitted_model(problem, prepared, run, plan, pitch, shape_power, source_note)
+    if tail_note is not None:
+        model.fit_report["tail_selection"] = tail_note
+    return model
+
+
+#: Candidate tail widths of the score test, as multiples of the core's scale (and >= 4 px).
+_TAIL_CANDIDATE_MULTIPLES = (3.0, 6.0, 12.0, 24.0, 48.0)
+
+
+def _tail_score_threshold(problem: _JointProblem) -> float:
+    """Score-test threshold: ``2 ln(N)`` (BIC-like penalty of two more parameters, halved
+    because the test is one-sided)."""
+    return 2.0 * math.log(max(problem.n_total_pixels, 2))
+
+
+def _tail_score_test(no_tail: _JointProblem, with_tail: _JointProblem, theta: np.ndarray):
+    """Does a tail improve the tail-free fit? Rao score test of ``w = 1`` for a few tail widths.
+
+    At the tail-free optimum the derivative of the weighted cost in ``w`` for a tail of width
+    ``T`` is ``g = sum W r c`` with ``c = contrast (E_core - E_tail)``; its Fisher information
+    is ``I = sum W c^2 / sigma^2``. ``g^2 / (sigma^2 I)`` is chi-square(1) when no tail is
+    present; the tail is added when the best width's statistic exceeds
+    :func:`_tail_score_threshold` with the sign of a cost that falls as ``w`` falls. Cheap
+    (one ESF per edge and width), so the tail fit runs only when the data ask for it.
+
+    Returns ``(start, score)``: the starting parameters of the tail fit or None, and the largest score.
+    """
+    fwhm, local = no_tail.unpack(theta)
+    lo, hi = with_tail.bounds()[with_tail.global_free.index("tail")]
+    best, best_width = 0.0, None
+    for multiple in _TAIL_CANDIDATE_MULTIPLES:
+        width = float(np.clip(multiple * fwhm["core"], math.exp(lo), math.exp(hi)))
+        trial = dict(fwhm, tail=width, w=1.0)
+        g = info = rss = 0.0
+        n = 0
+        for j in range(len(no_tail.edges)):
+            t = with_tail._edge_terms(j, trial, local[j], False)
+            r = t["values"] - t["model"]
+            c = (t["high"] - t["low"]) * (t["parts"]["core"]["esf"] - t["parts"]["tail"]["esf"])
+            g += _dot(t["pixel_weight"] * r, c)
+            info += _dot(t["pixel_weight"] * c, c)
+            rss += _dot(t["pixel_weight"] * r, r)
+            n += r.size
+        sigma2 = rss / max(n - theta.size, 1)
+        # Lowering w moves the model by -c dw: it helps when the residual correlates with -c.
+        score = (g * g) / (sigma2 * info) if info > 0 and g < 0 else 0.0
+        if score > best:
+            best, best_width = score, width
+    if best_width is None or best <= _tail_score_threshold(no_tail):
+        return None, best
+    start = np.concatenate([theta[:no_tail.n_global], [math.log(best_width), 0.97], theta[no_tail.n_global:]])
+    return start, best
+
+
+#: The focal spot counts as identified when every fitted source width is known to better than
+#: this fraction of itself (1 sigma, Fisher information).
+SOURCE_MAX_RELATIVE_UNCERTAINTY = 0.5
+
+
+def _unidentified_source(problem: _JointProblem, prepared: list[_Prepared], theta: np.ndarray,
+                         plan: _FitPlan) -> str | None:
+    """None when the fitted focal spot is identified; otherwise the reason, for the report.
+
+    Identified means every fitted source width has a 1-sigma uncertainty below
+    :data:`SOURCE_MAX_RELATIVE_UNCERTAINTY` of its value. Distances too close together (or
+    too small a magnification for the pixel size) leave the spot's width free along a valley
+    of the cost: the fit then returns some width with an uncertainty as large as itself.
+    """
+    residuals, jtj, terms = problem.residuals_and_jacobian_normal(theta)
+    all_res = np.concatenate(residuals)
+    weights = np.concatenate([t["pixel_weight"] for t in terms])
+    sigma2 = _dot(weights * all_res, all_res) / max(all_res.size - theta.size - 2 * len(prepared), 1)
+    cov = _inverse_fisher(jtj) * sigma2
+    worst = 0.0
+    for name in ("sx", "sy"):
+        if name in problem.global_free:
+            k = problem.global_free.index(name)
+            relative = math.sqrt(cov[k, k]) if np.isfinite(cov[k, k]) and cov[k, k] >= 0 else float("inf")
+            worst = max(worst, relative)    # sigma of log FWHM = relative sigma of the FWHM
+    if worst < SOURCE_MAX_RELATIVE_UNCERTAINTY:
+        return None
+    ratios = ", ".join(f"{r:.3g}" for r in np.unique(np.round(plan.ratios, 4)))
+    return (f"focal spot not identified by the object distances (ODD/SOD {ratios}): its fitted width was "
+            f"uncertain by {min(worst, 99.0):.0%}; the detector PSF holds the combined blur")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -405,7 +520,7 @@ def _reweight_and_reject(problem: _JointProblem, prepared: list[_Prepared], thet
 
 
 def _fitted_model(problem: _JointProblem, prepared: list[_Prepared], run: _OptimiserRun, plan: _FitPlan,
-                  pitch: float, shape_power: float) -> PSFModel:
+                  pitch: float, shape_power: float, source_note: str | None = None) -> PSFModel:
     """The PSF model at the optimum, with its uncertainties and the fit report."""
     theta = run.theta
     residuals, jtj, terms = problem.residuals_and_jacobian_normal(theta)
@@ -430,7 +545,9 @@ def _fitted_model(problem: _JointProblem, prepared: list[_Prepared], run: _Optim
         "shape_power": shape_power, "tail_fwhm_max_px": float(plan.tail_fwhm_max_px),
         "edges": edge_reports,
     }
-    if not plan.fit_source:
+    if source_note is not None:
+        report["note"] = source_note
+    elif not plan.fit_source:
         report["note"] = ("single object-to-detector ratio: source blur not separable, "
                           "the detector PSF holds the combined blur")
     core = ({"detector_fwhm_core_mm": 0.0, "detector_core_mtf_scale_mm": fwhm["core"] * pitch,

@@ -122,13 +122,35 @@ def normalise_edge_image(edge: EdgeImage) -> np.ndarray:
     return image
 
 
+#: Residual samples (evenly spaced over the region) the impulse noise model is fitted on.
+_NOISE_MODEL_SAMPLES = 20000
+#: Expectation-maximisation iterations of that fit (as the impulse stage's default).
+_NOISE_MODEL_ITERATIONS = 30
+
+
 def _impulse_mask(y: np.ndarray) -> np.ndarray:
-    """Bright impulses: > 8 robust sigmas above the 5x5 median, dilated by one pixel."""
-    filled = np.where(np.isfinite(y), y, np.nanmedian(y))
-    excess = filled - ndimage.median_filter(filled, size=5, mode="reflect")
-    sigma = robust_sigma(excess)
-    if not sigma > 0:
+    """Bright impulses: > 8 sigmas above the 5x5 median, dilated by one pixel.
+
+    The sigma is per pixel: the variance ``a * level + b`` (photon noise plus a read-noise
+    floor) of the impulse stage's noise model, fitted by expectation-maximisation on the
+    residuals to the 5x5 median (a Gaussian + uniform-pulse mixture, so the hits do not inflate
+    it) and evaluated at each pixel's median. One sigma for the whole region would mask the
+    ordinary photon noise of the bright side when the dark side is much quieter.
+    """
+    from ..stages.impulse.noise_model import _fit_mixture
+
+    finite = np.isfinite(y)
+    filled = np.where(finite, y, np.nanmedian(y))
+    median = ndimage.median_filter(filled, size=5, mode="reflect")
+    excess = filled - median
+    index = np.flatnonzero(finite)
+    index = index[np.linspace(0, index.size - 1, min(index.size, _NOISE_MODEL_SAMPLES)).astype(int)]
+    lo, hi = np.percentile(filled[finite], [0.1, 99.9])
+    if not hi > lo or robust_sigma(excess.ravel()[index]) <= 0:
         return np.zeros(y.shape, bool)
+    model = _fit_mixture(excess.ravel()[index], median.ravel()[index], photon_counting=True, polarity=1,
+                         value_range=float(hi - lo), iterations=_NOISE_MODEL_ITERATIONS)
+    sigma = np.sqrt(model.variance(median))
     return ndimage.binary_dilation(excess > 8.0 * sigma, iterations=1)
 
 

@@ -217,6 +217,13 @@ def sample_exponential_power(fwhm_x_px: float, fwhm_y_px: float, shape_power: fl
     return kernel / kernel.sum()
 
 
+def _with_sd(value: float, sd: float | None, unit: str = "") -> str:
+    """``value ± sd unit``, or "not determined" when the uncertainty exceeds the value."""
+    if sd is not None and np.isfinite(sd) and sd > abs(value):
+        return f"not determined by these edges ({value:.3g} ± {sd:.2g}{unit})"
+    return f"{value:.3g}" + (f" ± {sd:.2g}" if sd is not None and np.isfinite(sd) else "") + unit
+
+
 def _centre_pad(kernel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     out = np.zeros(shape, dtype=kernel.dtype)
     r0 = (shape[0] - kernel.shape[0]) // 2
@@ -520,6 +527,37 @@ class PSFModel:
         inside = np.cumsum(np.bincount(ring.ravel(), weights=psf.ravel(), minlength=radius + 1))
         keep = int(np.argmax(inside >= 1.0 - 1e-4)) if inside[-1] >= 1.0 - 1e-4 else radius
         return _centre_crop(psf, max(keep, 1))
+
+    # -- read-out ---------------------------------------------------------------------------------
+    def describe(self) -> list[str]:
+        """Lines stating what was fitted, with 1-sigma uncertainties, and what was not (CLI, GUI)."""
+        unc, report = self.uncertainty, self.fit_report
+        lines = []
+        if self.source_fitted:
+            lines.append(f"focal spot FWHM x, y: {_with_sd(self.source_fwhm_x_mm, unc.get('source_fwhm_x_mm'))}, "
+                         f"{_with_sd(self.source_fwhm_y_mm, unc.get('source_fwhm_y_mm'), ' mm')}")
+            detector = "detector"
+        else:
+            lines.append("focal spot: not fitted (" + report.get(
+                "note", "the object distances cannot separate it from the detector blur") + ")")
+            detector = "combined blur (focal spot + detector)"
+        if self.core_from_mtf:
+            lines.append(f"{detector} core MTF (1 + u (f s)^q)^(-1/u): "
+                         f"s {_with_sd(self.detector_core_mtf_scale_mm, unc.get('detector_core_mtf_scale_mm'), ' mm')}, "
+                         f"q {_with_sd(self.detector_core_mtf_power, unc.get('detector_core_mtf_power'))}, "
+                         f"u {_with_sd(self.detector_core_mtf_linnik, unc.get('detector_core_mtf_linnik'))}")
+        else:
+            lines.append(f"{detector} core FWHM: "
+                         f"{_with_sd(self.detector_fwhm_core_mm, unc.get('detector_fwhm_core_mm'), ' mm')}")
+        if self.detector_weight_core < 1.0:
+            lines.append(f"{detector} tail FWHM: "
+                         f"{_with_sd(self.detector_fwhm_tail_mm, unc.get('detector_fwhm_tail_mm'), ' mm')}")
+            lines.append(f"core weight: {_with_sd(self.detector_weight_core, unc.get('detector_weight_core'))}")
+        else:
+            lines.append("tail: none (core weight 1)")
+        lines.append(f"{detector} MTF50 {self.mtf50_cy_per_mm():.3g} cycles/mm, "
+                     f"line spread FWHM {self.detector_lsf_fwhm_mm():.3g} mm (before the pixel aperture)")
+        return lines
 
     # -- serialisation ----------------------------------------------------------------------------
     def to_dict(self) -> dict:
