@@ -62,15 +62,8 @@ def test_synthesis_matches_independent_2d_kernel_projection():
     np.testing.assert_allclose(window, lsf_from_kernel[r - 40:r + 41], atol=3e-3 * lsf_from_kernel.max())  # kernel support cut at 5 FWHM
 
 
-def test_gradient_is_exact_against_finite_differences(rng):
-    edges = _edges(rng, size=64)
-    prepared = [edge_fit._prepare(e, i, True) for i, e in enumerate(edges)]
-    for p in prepared:   # noise-model weights and masked pixels enter the gradient too
-        p.weight = rng.uniform(0.3, 3.0, p.values.size)
-        p.keep = rng.random(p.values.size) > 0.05
-    problem = edge_fit._JointProblem(prepared, 1.0, True, False, 256.0, 1 / 16, NOISE, 16.0)
-    theta = np.array([math.log(2.2), math.log(2.8), math.log(1.3), math.log(25.0), 0.87]
-                     + sum([[p.offset_px + 0.2, 0.4] for p in prepared], []))
+def _assert_gradient_exact(problem, theta):
+    """The objective's gradient against central finite differences."""
     _, grad = problem.cost_and_gradient(theta)
     numeric = np.zeros_like(theta)
     for k in range(theta.size):
@@ -80,6 +73,18 @@ def test_gradient_is_exact_against_finite_differences(rng):
         down[k] -= h
         numeric[k] = (problem.cost_and_gradient(up)[0] - problem.cost_and_gradient(down)[0]) / (2 * h)
     np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-7 * np.abs(numeric).max())
+
+
+def test_gradient_is_exact_against_finite_differences(rng):
+    edges = _edges(rng, size=64)
+    prepared = [edge_fit._prepare(e, i, True) for i, e in enumerate(edges)]
+    for p in prepared:   # noise-model weights and masked pixels enter the gradient too
+        p.weight = rng.uniform(0.3, 3.0, p.values.size)
+        p.keep = rng.random(p.values.size) > 0.05
+    problem = edge_fit._JointProblem(prepared, 1.0, True, False, 256.0, 1 / 16, NOISE, 16.0)
+    theta = np.array([math.log(2.2), math.log(2.8), math.log(1.3), math.log(25.0), 0.87]
+                     + sum([[p.offset_px + 0.2, 0.4] for p in prepared], []))
+    _assert_gradient_exact(problem, theta)
 
 
 @pytest.mark.parametrize("with_tail", [False, True])
@@ -93,15 +98,7 @@ def test_gradient_is_exact_for_the_generalised_core(rng, with_tail):
     assert problem.global_free == ["sx", "sy", "core", "power", "linnik"] + (["tail", "w"] if with_tail else [])
     theta = np.array([math.log(2.2), math.log(2.8), math.log(3.0), 1.3, 0.4] + ([math.log(25.0), 0.9] if with_tail else [])
                      + sum([[p.offset_px + 0.2, 0.4] for p in prepared], []))
-    _, grad = problem.cost_and_gradient(theta)
-    numeric = np.zeros_like(theta)
-    for k in range(theta.size):
-        h = 1e-6 * max(1.0, abs(theta[k]))
-        up, down = theta.copy(), theta.copy()
-        up[k] += h
-        down[k] -= h
-        numeric[k] = (problem.cost_and_gradient(up)[0] - problem.cost_and_gradient(down)[0]) / (2 * h)
-    np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-7 * np.abs(numeric).max())
+    _assert_gradient_exact(problem, theta)
 
 
 def test_joint_fit_recovers_parameters_and_heldout_kernel(fitted):

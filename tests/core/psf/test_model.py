@@ -155,3 +155,70 @@ def test_load_rejects_missing_and_non_json(tmp_path):
     bad.write_text("{not json")
     with pytest.raises(InputError, match="not valid JSON"):
         load_psf(bad)
+
+
+def _generalised(**kw):
+    base = dict(pixel_pitch_mm=0.2, source_fwhm_x_mm=0.0, source_fwhm_y_mm=0.0, detector_fwhm_core_mm=0.0,
+                detector_fwhm_tail_mm=0.0, detector_weight_core=1.0, detector_core_mtf_scale_mm=0.6,
+                detector_core_mtf_power=1.2, detector_core_mtf_linnik=0.0, source_fitted=False)
+    base.update(kw)
+    return PSFModel(**base)
+
+
+def test_generalised_core_holds_the_old_core_shapes():
+    # u = 0, q = 2: a Gaussian; u = 2/3, q = 2: SABER's exponential core (transform (1 + (2 pi nu)^2)^-1.5).
+    f = np.linspace(0.0, 5.0, 41)
+    fwhm = 0.6
+    gauss = PSFModel(0.2, 0.0, 0.0, fwhm, 0.0, 1.0, shape_power=2.0)
+    same = _generalised(detector_core_mtf_scale_mm=np.pi * fwhm / (2 * np.sqrt(np.log(2))), detector_core_mtf_power=2.0)
+    np.testing.assert_allclose(same.detector_mtf(f), gauss.detector_mtf(f), atol=1e-12)
+    expo = PSFModel(0.2, 0.0, 0.0, fwhm, 0.0, 1.0, shape_power=1.0)
+    u = 2.0 / 3.0
+    same = _generalised(detector_core_mtf_scale_mm=2 * np.pi * fwhm / (2 * np.log(2)) / np.sqrt(u),
+                        detector_core_mtf_power=2.0, detector_core_mtf_linnik=u)
+    np.testing.assert_allclose(same.detector_mtf(f), expo.detector_mtf(f), atol=1e-12)
+    # The Fourier-synthesised kernel of the first agrees with the area-integrated Gaussian kernel.
+    a, b = gauss.detector_kernel().astype(float), _generalised(
+        detector_core_mtf_scale_mm=np.pi * fwhm / (2 * np.sqrt(np.log(2))), detector_core_mtf_power=2.0
+    ).detector_kernel().astype(float)
+    n = max(a.shape[0], b.shape[0])
+    pad = lambda k: np.pad(k, ((n - k.shape[0]) // 2,) * 2)  # noqa: E731
+    assert np.abs(pad(a) - pad(b)).max() < 0.005 * a.max()
+
+
+def test_generalised_kernel_carries_its_mtf():
+    model = _generalised()
+    kernel = model.kernel(100.0, 100.0).astype(float)
+    assert kernel.shape[0] % 2 == 1 and abs(kernel.sum() - 1.0) < 1e-5 and kernel.min() >= 0
+    line = kernel.sum(axis=0)
+    f_px = np.fft.rfftfreq(line.size)
+    dft = np.real(np.fft.rfft(np.fft.ifftshift(line)))
+    expected = sum(model.detector_mtf((f_px + k) / 0.2) * np.sinc(f_px + k) for k in range(-6, 7))
+    assert np.abs(dft - expected).max() < 0.005
+
+
+def test_not_fitted_source_and_mtf_core_in_the_file(tmp_path):
+    model = _generalised(fit_report={"note": "single object-to-detector ratio"})
+    path = save_psf(model, tmp_path / "psf.json")
+    record = json.loads(path.read_text())
+    assert record["format_version"] == 2 and record["source"] == "not fitted"
+    assert record["source_fwhm_x_mm"] is None and record["detector_fwhm_core_mm"] is None
+    assert load_psf(path) == model
+    text = "\n".join(model.describe())
+    assert "focal spot: not fitted (single object-to-detector ratio)" in text and "0 x 0" not in text
+    assert "MTF50" in text and "tail: none" in text
+    with pytest.raises(ParameterError, match="source widths must be 0"):
+        _generalised(source_fwhm_x_mm=0.1)
+
+
+def test_format_1_files_still_load(tmp_path):
+    model = _model()
+    record = model.to_dict()
+    record["format_version"] = 1
+    for key in ("detector_core_mtf_scale_mm", "detector_core_mtf_power", "detector_core_mtf_linnik", "source_fitted"):
+        record.pop(key)
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(record))
+    back = load_psf(path)
+    assert not back.core_from_mtf and back.source_fitted
+    np.testing.assert_array_equal(back.kernel(100.0, 200.0), model.kernel(100.0, 200.0))
