@@ -43,6 +43,10 @@ def test_demo_fits_the_frame_blur_and_deblurs_with_it(tmp_path, capsys):
     r = np.arange(kernel.shape[0]) - kernel.shape[0] // 2
     variance = float((kernel.sum(axis=0) * r**2).sum())
     assert abs(np.sqrt(variance) - sigma_px) < 0.1 * sigma_px
+    # The demo truth has neither focal-spot blur (its two distances cannot identify one) nor a
+    # tail: the file says so instead of inventing a spot or splitting the Gaussian in two.
+    assert not model.source_fitted and model.detector_weight_core == 1.0
+    assert json.loads((tmp_path / "psf.json").read_text())["source"] == "not fitted"
     side = json.loads((tmp_path / "radiograph_dslrxr.tif.json").read_text())
     assert side["results"]["deblur"]["method"] == "adaptive"
     reg_used = side["results"]["deblur"]["reg_used"]  # the one auto value the solver used for all channels

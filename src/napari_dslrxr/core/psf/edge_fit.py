@@ -345,8 +345,9 @@ def _unidentified_source(problem: _JointProblem, prepared: list[_Prepared], thet
     if worst < SOURCE_MAX_RELATIVE_UNCERTAINTY:
         return None
     ratios = ", ".join(f"{r:.3g}" for r in np.unique(np.round(plan.ratios, 4)))
+    spread = f"{worst:.0%}" if worst <= 1.0 else "more than 100 %"
     return (f"focal spot not identified by the object distances (ODD/SOD {ratios}): its fitted width was "
-            f"uncertain by {min(worst, 99.0):.0%}; the detector PSF holds the combined blur")
+            f"uncertain by {spread}; the detector PSF holds the combined blur")
 
 
 # ---------------------------------------------------------------------------------------------

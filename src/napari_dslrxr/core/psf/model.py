@@ -224,6 +224,11 @@ def _with_sd(value: float, sd: float | None, unit: str = "") -> str:
     return f"{value:.3g}" + (f" ± {sd:.2g}" if sd is not None and np.isfinite(sd) else "") + unit
 
 
+def _plus_minus(value: float, sd: float | None) -> str:
+    """``value ± sd`` of a shape parameter (0 is a valid value of ``u``, so no "not determined")."""
+    return f"{value:.3g}" + (f" ± {sd:.2g}" if sd is not None and np.isfinite(sd) else "")
+
+
 def _centre_pad(kernel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     out = np.zeros(shape, dtype=kernel.dtype)
     r0 = (shape[0] - kernel.shape[0]) // 2
@@ -539,13 +544,14 @@ class PSFModel:
             detector = "detector"
         else:
             lines.append("focal spot: not fitted (" + report.get(
-                "note", "the object distances cannot separate it from the detector blur") + ")")
+                "note", "the object distances cannot separate it from the detector blur").removeprefix(
+                "focal spot ") + ")")
             detector = "combined blur (focal spot + detector)"
         if self.core_from_mtf:
             lines.append(f"{detector} core MTF (1 + u (f s)^q)^(-1/u): "
                          f"s {_with_sd(self.detector_core_mtf_scale_mm, unc.get('detector_core_mtf_scale_mm'), ' mm')}, "
-                         f"q {_with_sd(self.detector_core_mtf_power, unc.get('detector_core_mtf_power'))}, "
-                         f"u {_with_sd(self.detector_core_mtf_linnik, unc.get('detector_core_mtf_linnik'))}")
+                         f"q {_plus_minus(self.detector_core_mtf_power, unc.get('detector_core_mtf_power'))}, "
+                         f"u {_plus_minus(self.detector_core_mtf_linnik, unc.get('detector_core_mtf_linnik'))}")
         else:
             lines.append(f"{detector} core FWHM: "
                          f"{_with_sd(self.detector_fwhm_core_mm, unc.get('detector_fwhm_core_mm'), ' mm')}")
