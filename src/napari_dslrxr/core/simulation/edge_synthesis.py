@@ -84,11 +84,23 @@ def synthesize_edge_image(model: PSFModel, source_to_object_mm: float, source_to
     ay = model.source_fwhm_y_mm * m1 / pitch / kappa
     src_scale = math.hypot(ax * c, ay * s)
     core_scale = model.detector_fwhm_core_mm / pitch / kappa
+    if model.core_from_mtf:   # reach of the MTF-defined core: 30 scales (heavy stretched-exponential tails)
+        core_scale = 30.0 * model.detector_core_mtf_scale_mm / pitch / 40.0
     tail_scale = model.detector_fwhm_tail_mm / pitch / kappa
     reach = half_diag + 40.0 * max(src_scale, core_scale, 0.1) + (60.0 * tail_scale if model.detector_weight_core < 1 else 0)
     n_half = int(math.ceil(reach / step_px))
     t = np.arange(-n_half, n_half + 1) * step_px   # odd length, centred: 'same' convolution keeps t = 0
-    lsf_det = model.detector_weight_core * _projected_lsf(t, core_scale, p)
+    if model.core_from_mtf:
+        # The 1-D line spread of an isotropic PSF is the inverse transform of its radial MTF.
+        from ..psf.model import generalised_mtf
+
+        freq = np.fft.rfftfreq(t.size, d=step_px)
+        core_mtf = generalised_mtf(freq * model.detector_core_mtf_scale_mm / pitch, model.detector_core_mtf_power,
+                                   model.detector_core_mtf_linnik)
+        lsf_core = np.fft.fftshift(np.fft.irfft(core_mtf, t.size)) / step_px
+    else:
+        lsf_core = _projected_lsf(t, core_scale, p)
+    lsf_det = model.detector_weight_core * lsf_core
     if model.detector_weight_core < 1:
         lsf_det = lsf_det + (1 - model.detector_weight_core) * _projected_lsf(t, tail_scale, p)
     lsf = fftconvolve(lsf_det, _projected_lsf(t, src_scale, p), mode="same") * step_px if src_scale > 0 else lsf_det
