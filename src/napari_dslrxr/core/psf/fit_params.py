@@ -43,5 +43,6 @@ class EdgeFitSettings:
     pixel_pitch_mm: float = field(default=0.1, metadata={
         "help": "size of one image pixel at the screen", "unit": "mm", "min": 1e-4, "max": 100.0})
     shape_power: float = field(default=1.0, metadata={
-        "help": "profile of the focal-spot and detector blur: 1 = exponential (SABER), 2 = Gaussian",
+        "help": "profile of the focal spot and of a detector tail: 1 = exponential (SABER), 2 = Gaussian "
+                "(the detector core's shape is fitted)",
         "choices": (1.0, 2.0)})
