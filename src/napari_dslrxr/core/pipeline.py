@@ -418,7 +418,8 @@ def _display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelineP
 
 
 def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
-                         params: PipelineParams | None = None, *, fill_outside: bool = True) -> np.ndarray:
+                         params: PipelineParams | None = None, *, fill_outside: bool = True,
+                         report: dict | None = None) -> np.ndarray:
     """Stages v-vi and the display curve on a value-of-interest scaled attenuation image.
 
     The display end of the chain, shared by :func:`run_pipeline`, :func:`enhance_radiograph`
@@ -441,6 +442,10 @@ def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
     fill_outside : bool
         Set the pixels outside ``mask`` to the ``outside_region`` value (as the pipeline's
         output does); False leaves them processed like the rest.
+    report : dict, optional
+        Receives ``display_fit`` (the compression that kept the anatomy off the display's
+        ends) and ``clipped_fraction`` (the share of the anatomy still at pure black or
+        white), as the pipeline's sidecar records them.
 
     Returns
     -------
@@ -448,7 +453,7 @@ def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
         Display values in [0, 1] (a new array).
     """
     params = params or PipelineParams()
-    for display in _display_steps(image, mask, params, fill_outside):
+    for display in _display_steps(image, mask, params, fill_outside, report):
         pass  # rebinding drops each intermediate as soon as the next stage is done
     return display
 
