@@ -304,7 +304,9 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     results["region"] = {"polygon_xy": region.polygon_xy.round(2).tolist(), "detected": region.detected,
                          "area_fraction": float(region.mask.mean()), "evidence": region.evidence}
     if not region.detected and "reason" in region.evidence:
-        warnings.append(f"region: no screen found ({region.evidence['reason']}); the whole frame is used")
+        used = ("the area the flat frame saw exposed is used" if "flat_exposed_fraction" in region.evidence
+                else "the whole frame is used")
+        warnings.append(f"region: no screen found ({region.evidence['reason']}); {used}")
     timings["region"] = clock() - t0
     yield 3, total
 
