@@ -591,7 +591,7 @@ def run_display_pipeline(image: np.ndarray, *, params: PipelineParams | None = N
         inter["attenuation"] = x.copy()
     timings["region"] = clock() - t0
     yield 1, total
-    steps = _display_steps(x, mask, params, fill_outside=field is not None)
+    steps = _display_steps(x, mask, params, fill_outside=field is not None, report=results.setdefault("display", {}))
     del x
     for step, stage in ((2, "dynamic_range"), (3, "contrast"), (4, "display")):
         t0 = clock()
