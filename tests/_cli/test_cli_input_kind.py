@@ -80,6 +80,10 @@ def test_cr_dicoms_come_out_bone_white_without_blanked_anatomy(cr_runs):
         kind = side["results"]["input_kind"]
         assert kind["kind"] == "display" and kind["certain"] and "CR" in kind["evidence"]
         assert side["results"]["flatfield"].startswith("skipped")
+        # the sidecar reports the anatomy's clipped share, and it agrees with the output's
+        reported = side["results"]["display"]["clipped_fraction"]
+        measured = float(np.mean((output[anatomy] == 0) | (output[anatomy] == 65535)))
+        assert 0.0 <= reported <= 0.01 and measured <= 0.01 + 2 * reported, (reported, measured)
 
 
 @pytest.mark.realdata

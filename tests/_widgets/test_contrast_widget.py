@@ -122,3 +122,50 @@ def test_display_radiograph_input(make_napari_viewer, wait_for_worker, rng):
     # Latitude compresses the slow left-right ramp more than the 16 px stripes.
     assert ramp_narrow < 0.7 * ramp_wide
     assert ramp_narrow / stripes_narrow < 0.7 * ramp_wide / stripes_wide
+
+
+def _clipped_percent(readout: str) -> float:
+    import re
+
+    match = re.search(r"([0-9.]+) % of the anatomy clipped", readout)
+    assert match, readout
+    return float(match.group(1))
+
+
+def test_readout_reports_the_clipped_anatomy(docked, phantom, qtbot, wait_for_worker, errors_shown):
+    """The read-out's clipped share follows the picture: strong gains without the fit clip much."""
+    from qtpy.QtCore import Qt
+
+    from napari_dslrxr.core.params import PipelineParams
+
+    viewer, widget = docked
+    truth = phantom.truth
+    h, w = phantom.raw_rgb.shape[:2]
+    # independent reference: body pixels (truth attenuation above the direct exposure's 0.1) well
+    # inside the screen, clipped when at the 8-bit preview's 0 or 255
+    attenuation = cv2.warpPerspective(truth.attenuation, truth.homography, (w, h), flags=cv2.INTER_LINEAR)
+    inner = cv2.erode(truth.screen_mask.astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
+    body = inner & (attenuation > 0.6)
+
+    def click_apply() -> float:
+        qtbot.mouseClick(widget._apply.native, Qt.MouseButton.LeftButton)
+        qtbot.waitUntil(lambda: widget._apply.enabled and widget._readout.value.startswith("applied"), timeout=60_000)
+        shown = widget.result[body]
+        return float(np.mean((shown <= 0.5 / 255) | (shown >= 254.5 / 255)))
+
+    import dataclasses
+
+    # strong gains push the anatomy beyond the value-of-interest range; without the fit it burns out
+    defaults = PipelineParams()
+    widget.set_params({"dynamic_range": dataclasses.replace(defaults.dynamic_range, max_clipped_percent=100.0,
+                                                            latitude=1.0, detail_gain=3.0),
+                       "contrast": dataclasses.replace(defaults.contrast, bone_contrast=3.0, halo_step=0.0,
+                                                       coarse_halo_step=0.0)})
+    steep = click_apply()  # share of the body clipped (independent of the core's anatomy rule)
+    reported = _clipped_percent(widget._readout.value) / 100
+    assert steep > 0.05, (widget._readout.value, steep)  # the strong gains burn out part of the body
+    assert abs(reported - steep) < 0.3 * steep, (reported, steep)
+    widget.set_params({"dynamic_range": defaults.dynamic_range, "contrast": defaults.contrast})
+    click_apply()
+    # the defaults keep the anatomy the core counts (direct exposure left out) within 1 %
+    assert _clipped_percent(widget._readout.value) <= 1.0

@@ -180,7 +180,7 @@ def test_contrast_widget_and_core_share_the_display_stages(frames):
 
     # linear path: widget on the pipeline's VOI-scaled attenuation == the pipeline's display
     prepared = PreparedInput(attenuation, mask, attenuation, mask, 1.0)
-    _, widget_display = render(prepared, frames.raw_rgb, LINEAR, params, attenuation.size, True)
+    _, widget_display, _ = render(prepared, frames.raw_rgb, LINEAR, params, attenuation.size, True)
     core_display = apply_display_stages(attenuation, mask, params)
     assert widget_display.dtype == np.float32 and widget_display.shape == mask.shape
     np.testing.assert_array_equal(widget_display, result.display)
@@ -189,5 +189,5 @@ def test_contrast_widget_and_core_share_the_display_stages(frames):
 
     # display-radiograph path: widget (its own VOI scaling) == enhance_radiograph
     grey = frames.raw_rgb.mean(axis=2).astype(np.float32)
-    _, widget_grey = render(None, grey, DISPLAY, params, grey.size, True)
+    _, widget_grey, _ = render(None, grey, DISPLAY, params, grey.size, True)
     np.testing.assert_array_equal(widget_grey, enhance_radiograph(grey, params))

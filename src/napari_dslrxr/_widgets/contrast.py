@@ -112,13 +112,14 @@ def prepare_input(data: np.ndarray, kind: str, max_pixels: int, params: Pipeline
 
 
 def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: PipelineParams,
-           max_pixels: int, full: bool, progress=None) -> tuple[PreparedInput, np.ndarray]:
+           max_pixels: int, full: bool, progress=None) -> tuple[PreparedInput, np.ndarray, dict]:
     """Worker job: prepare the input if needed, then the core display stages on it.
 
     The stages after value-of-interest scaling, exactly as the pipeline runs them
     (:func:`~napari_dslrxr.core.pipeline.apply_display_stages`): latitude reduction,
     multiscale contrast and the display curve; outside the screen region is black (or
-    white), as in the pipeline's output.
+    white), as in the pipeline's output. Also returns the display report (the share of the
+    anatomy clipped, as the pipeline's sidecar records it).
     """
     if progress is not None:
         progress(0, 2)
@@ -127,7 +128,14 @@ def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: 
     if progress is not None:
         progress(1, 2)
     image, mask = (prepared.image, prepared.mask) if full else (prepared.small, prepared.small_mask)
-    return prepared, apply_display_stages(image, mask, params)
+    report: dict = {}
+    display = apply_display_stages(image, mask, params, report=report)
+    return prepared, display, report
+
+
+def clipped_text(fraction: float) -> str:
+    """The read-out's clipping figure: the share of the anatomy at pure black or white."""
+    return f"{100.0 * fraction:.1f} % of the anatomy clipped"
 
 
 def layer_input_kind(layer) -> InputKind:
@@ -253,9 +261,9 @@ class ContrastWidget(LivePreviewMixin, Container):
             self._preview_pending = False
 
         def returned(out) -> None:
-            prepared, display = out
+            prepared, display, report = out
             self._store(layer, kind, prepared)
-            self._show(layer, prepared, display, full, started)
+            self._show(layer, prepared, display, full, started, report.get("clipped_fraction", 0.0))
 
         if full:
             return run_in_worker(render, self._cached(layer), np.asarray(layer.data), kind, params,
@@ -273,7 +281,8 @@ class ContrastWidget(LivePreviewMixin, Container):
         if self._readout.value == "running...":
             self._readout.value = self._job.status.value
 
-    def _show(self, layer, prepared: PreparedInput, display: np.ndarray, full: bool, started: float) -> None:
+    def _show(self, layer, prepared: PreparedInput, display: np.ndarray, full: bool, started: float,
+              clipped_fraction: float) -> None:
         scale = np.asarray(layer.scale[-2:], float) * (1.0 if full else prepared.factor)
         # Pixel centres: a preview pixel covers `factor` input pixels.
         translate = np.asarray(layer.translate[-2:], float)
@@ -289,9 +298,11 @@ class ContrastWidget(LivePreviewMixin, Container):
         elapsed = time.perf_counter() - started
         if full:
             self.result = display
-            self._readout.value = f"applied at {display.shape[1]}x{display.shape[0]} px in {elapsed:.2f} s"
+            self._readout.value = (f"applied at {display.shape[1]}x{display.shape[0]} px in {elapsed:.2f} s; "
+                                   f"{clipped_text(clipped_fraction)}")
         else:
             self.preview = display
             self.last_preview_s = elapsed
             self._readout.value = (f"preview {display.shape[1]}x{display.shape[0]} px "
-                                   f"(1/{prepared.factor:.2g} scale) in {elapsed * 1000:.0f} ms")
+                                   f"(1/{prepared.factor:.2g} scale) in {elapsed * 1000:.0f} ms; "
+                                   f"{clipped_text(clipped_fraction)}")

@@ -187,6 +187,10 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     small = cv2.resize(attenuation, (max(16, round(w / factor)), max(16, round(h / factor))),
                        interpolation=cv2.INTER_AREA) if factor > 1 else attenuation
     display_oriented = small if params.output.polarity == "bone_white" else -small
+    # Behind a blade a camera frame gets a few counts at most: its log is noise, wider than the
+    # field's anatomy, and fails the blade test's uniformity (a starved blade went undetected
+    # and its band took the value-of-interest window). A 1 px Gaussian averages that noise down.
+    display_oriented = cv2.GaussianBlur(display_oriented, (0, 0), 1.0)
     results["collimation"] = {"detected": False}
     if not _may_hold_blades(display_oriented, mask, factor):
         return mask, region
@@ -300,7 +304,9 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     results["region"] = {"polygon_xy": region.polygon_xy.round(2).tolist(), "detected": region.detected,
                          "area_fraction": float(region.mask.mean()), "evidence": region.evidence}
     if not region.detected and "reason" in region.evidence:
-        warnings.append(f"region: no screen found ({region.evidence['reason']}); the whole frame is used")
+        used = ("the area the flat frame saw exposed is used" if "flat_exposed_fraction" in region.evidence
+                else "the whole frame is used")
+        warnings.append(f"region: no screen found ({region.evidence['reason']}); {used}")
     timings["region"] = clock() - t0
     yield 3, total
 
@@ -414,7 +420,8 @@ def _display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelineP
 
 
 def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
-                         params: PipelineParams | None = None, *, fill_outside: bool = True) -> np.ndarray:
+                         params: PipelineParams | None = None, *, fill_outside: bool = True,
+                         report: dict | None = None) -> np.ndarray:
     """Stages v-vi and the display curve on a value-of-interest scaled attenuation image.
 
     The display end of the chain, shared by :func:`run_pipeline`, :func:`enhance_radiograph`
@@ -437,6 +444,10 @@ def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
     fill_outside : bool
         Set the pixels outside ``mask`` to the ``outside_region`` value (as the pipeline's
         output does); False leaves them processed like the rest.
+    report : dict, optional
+        Receives ``display_fit`` (the compression that kept the anatomy off the display's
+        ends) and ``clipped_fraction`` (the share of the anatomy still at pure black or
+        white), as the pipeline's sidecar records them.
 
     Returns
     -------
@@ -444,7 +455,7 @@ def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
         Display values in [0, 1] (a new array).
     """
     params = params or PipelineParams()
-    for display in _display_steps(image, mask, params, fill_outside):
+    for display in _display_steps(image, mask, params, fill_outside, report):
         pass  # rebinding drops each intermediate as soon as the next stage is done
     return display
 
@@ -580,7 +591,7 @@ def run_display_pipeline(image: np.ndarray, *, params: PipelineParams | None = N
         inter["attenuation"] = x.copy()
     timings["region"] = clock() - t0
     yield 1, total
-    steps = _display_steps(x, mask, params, fill_outside=field is not None)
+    steps = _display_steps(x, mask, params, fill_outside=field is not None, report=results.setdefault("display", {}))
     del x
     for step, stage in ((2, "dynamic_range"), (3, "contrast"), (4, "display")):
         t0 = clock()

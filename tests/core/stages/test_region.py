@@ -233,3 +233,28 @@ def test_screen_evidence_on_a_side_shorter_than_the_averaging_run(rng):
     corners = np.array([[30.0, 20.0], [36.0, 20.0], [36.0, 39.0], [30.0, 39.0]])  # 6 px wide
     evidence = screen_evidence(small, np.ones_like(small), corners, RegionParams())
     assert evidence["border_coverage"] > 0.7 and evidence["accepted"]
+
+
+def test_no_screen_border_falls_back_to_the_area_the_flat_saw_exposed(rng):
+    """A starved frame whose screen border is too noisy for evidence: the region is where the flat
+    was lit (not the whole frame, whose dark room the flat-field division lifts), and a flat lit
+    everywhere (the camera framed part of the screen) still gives the whole frame."""
+    h, w = 180, 270
+    yy, xx = np.mgrid[0:h, 0:w]
+    screen = (np.abs(xx - 135) < 70) & (np.abs(yy - 90) < 55)
+    vignetting = (1.0 / (1.0 + 0.5 * ((xx - 135) ** 2 + (yy - 90) ** 2) / 160.0**2) ** 2).astype(np.float32)
+    flat_light = vignetting * np.where(screen, 1.0, 0.004).astype(np.float32)
+    # the camera frame: 3 counts in the open beam, read noise 3 counts; a limb absorbs most of it
+    limb = (np.abs(xx - 135) < 40) & screen
+    signal = 3.0 * flat_light * np.where(limb, 0.1, 1.0)
+    frame = (rng.poisson(signal) + rng.normal(0, 3.0, signal.shape)).astype(np.float32)
+    corrected = frame / np.maximum(flat_light, 1e-3 * flat_light.max())
+    region = detect_screen(corrected, illumination=flat_light)
+    assert not region.detected
+    assert region.evidence["reason"]
+    overlap = (region.mask & screen).sum() / screen.sum()
+    # grown by 2 px for the soft rim: about 1000 px beyond a 140 x 110 px screen
+    assert overlap > 0.99 and (region.mask & ~screen).sum() < 0.1 * screen.sum()
+    assert region.evidence["flat_exposed_fraction"] == pytest.approx(screen.mean(), abs=0.03)
+    whole = detect_screen(frame, illumination=np.ones((h, w), np.float32) * vignetting)
+    assert whole.mask.all() and "flat_exposed_fraction" not in whole.evidence

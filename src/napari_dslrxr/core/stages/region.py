@@ -54,8 +54,11 @@ class RegionParams:
         that contrast before a screen is accepted (0.3 to 1).
     max_bright_surround : float
         Largest share of the surround (away from the border) that may be as bright as the
-        screen's edge; a brighter surround means the candidate is anatomy, not a screen
-        (0 to 0.5).
+        screen's edge; a brighter surround means the candidate is anatomy, or only the
+        brightest part of a screen (direct exposure beside a limb that absorbs nearly as much
+        as the room is dark), not a whole screen (0 to 0.5). Measured on camera frames of
+        real anatomy: whole screens leave at most 0.06 % of the surround that bright, parts of
+        screens 1-6 %.
     detect_collimation : bool
         For display radiographs (CR/DR, :func:`napari_dslrxr.core.pipeline.enhance_radiograph`
         and the contrast widget): find collimator blades with :func:`detect_collimation` and
@@ -87,7 +90,7 @@ class RegionParams:
     min_border_coverage: float = field(default=0.7, metadata={
         "help": "share of the screen border's length that must show that contrast (else the whole frame is used)",
         "unit": "fraction", "min": 0.3, "max": 1.0})
-    max_bright_surround: float = field(default=0.03, metadata={
+    max_bright_surround: float = field(default=0.01, metadata={
         "help": "largest share of the surround as bright as the screen's edge (else the whole frame is used)",
         "unit": "fraction", "min": 0.0, "max": 0.5})
     detect_collimation: bool = field(default=True, metadata={

@@ -207,6 +207,37 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
     return evidence
 
 
+#: A pixel the flat frame lights less than this share of its 99.5th percentile got no X-rays (the
+#: screen's rim under vignetting and heel keeps about 0.3, room light stays below 0.05).
+_FLAT_EXPOSED_FRACTION = 0.15
+
+
+def flat_exposed_area(light: np.ndarray) -> np.ndarray | None:
+    """Where the open-beam flat frame saw the screen lit, or None when that is (nearly) everywhere.
+
+    The flat's pixels above :data:`_FLAT_EXPOSED_FRACTION` of its 99.5th percentile, opened and
+    closed (5 x 5), the largest component with its holes filled and grown by 2 px (the screen's
+    soft rim). None when that area covers more than 95 % of the frame (the camera framed part
+    of the screen: the whole frame is the region) or less than 2 % (no usable flat).
+    """
+    top = float(np.percentile(light, 99.5))
+    if not top > 0:
+        return None
+    lit = (light > _FLAT_EXPOSED_FRACTION * top).astype(np.uint8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    lit = cv2.morphologyEx(cv2.morphologyEx(lit, cv2.MORPH_OPEN, kernel), cv2.MORPH_CLOSE, kernel)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(lit, connectivity=8)
+    if n <= 1:
+        return None
+    component = (labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))).astype(np.uint8)
+    contours, _ = cv2.findContours(component, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    filled = np.zeros_like(component)
+    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    filled = cv2.dilate(filled, kernel)
+    share = float(filled.mean())
+    return filled.astype(bool) if 0.02 <= share <= 0.95 else None
+
+
 def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
                   illumination: np.ndarray | None = None) -> Region:
     """Find the exposed screen quadrilateral in a (flat-fielded) frame, only on strong evidence.
@@ -245,9 +276,18 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
     h, w = arr.shape[:2]
     whole = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
 
+    exposed: list = [None]  # the flat frame's exposed area (small-image mask), once the flat is read
+
     def nothing(reason: str, **extra) -> Region:
-        return Region(np.ones((h, w), bool), whole, detected=False, evidence={"accepted": False, **extra,
-                                                                               "reason": reason})
+        evidence = {"accepted": False, **extra, "reason": reason}
+        if exposed[0] is None:
+            return Region(np.ones((h, w), bool), whole, detected=False, evidence=evidence)
+        # no screen border on evidence, but the open-beam flat shows where X-rays reached the
+        # screen: nothing outside that area can be anatomy (the flat-field division lifts it to
+        # the screen's level, where it would take the value-of-interest window)
+        evidence["flat_exposed_fraction"] = round(float(exposed[0].mean()), 4)
+        mask = cv2.resize(exposed[0].astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+        return Region(mask, whole, detected=False, evidence=evidence)
 
     if params.polygon_xy:
         poly = np.asarray(params.polygon_xy, np.float64)
@@ -271,6 +311,8 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
         if light.ndim == 2 and small.ndim == 3:
             light = light[..., None]
         small = small * light if light.shape[:2] == small.shape[:2] else small
+        if light.shape[:2] == small.shape[:2]:
+            exposed[0] = flat_exposed_area(light if light.ndim == 2 else light.sum(axis=2))
     if small.ndim == 3:
         small = small.sum(axis=2)
     noise = _noise_map(small)

@@ -1,0 +1,120 @@
+"""Halo beside lucent areas vs contrast gain: display settings side by side.
+
+For each setting (default first, then the candidates named below):
+
+* halo: the demo frame (600 x 900, seed 0, the phantom of ``make demo`` at half size) through
+  the whole pipeline; the bright band beside the two lung fields is the largest mean display
+  value of a 6 px ring 3-60 px (at 1800 px width) outside the lungs, minus the mean of the ring
+  70-100 px out, over soft tissue only (truth attenuation 1.05-1.6: no spine, bars or discs),
+  as a share of the display range. With no enhancement at all it reads about 0.5 % (the
+  body's thickness variation): that is the metric's floor;
+* the share of the lung interiors clipped to black or white;
+* GCF of the real CR chest and leg (``$DSLRXR_DATA/cr_dicom``) as :mod:`eval_contrast` scores
+  it (input stretched within the exposed field, the largest box inside it), and the flat-patch
+  noise ratio of ours and of CLAHE (``skimage.exposure.equalize_adapthist``) bisected to the
+  same GCF.
+
+Writes ``results/eval_halo.json``. Run: ``python benchmarks/eval_halo.py``.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _harness import record  # noqa: E402
+from eval_contrast import DATA, clahe_at_gcf, find_flat_patch, gcf, highpass_std, inner_box, stretch  # noqa: E402
+
+#: name -> {"section.field": value}: the settings compared with the defaults.
+SETTINGS = {
+    "default": {},
+    "coarse guard 0.03, latitude 1": {"contrast.coarse_halo_step": 0.03, "dynamic_range.latitude": 1.0},
+    "coarse guard 0.03, latitude 1, edge-aware detail x2 below 0.05": {
+        "contrast.coarse_halo_step": 0.03, "dynamic_range.latitude": 1.0, "dynamic_range.detail_gain": 2.0,
+        "dynamic_range.edge_step": 0.05},
+    "no enhancement (VOI + display curve only)": {"contrast.enabled": False, "dynamic_range.enabled": False},
+}
+
+
+def demo_halo_probe(shape=(600, 900)):
+    """The demo frame and a function giving (bright band, lung interior clipped) of a display image."""
+    from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
+
+    frames = make_dslr_radiograph(shape, seed=0)
+    truth = frames.truth
+    hs, ws = truth.attenuation.shape
+    yy, xx = np.mgrid[0:hs, 0:ws].astype(np.float32)
+    u, v = xx / ws, yy / hs
+    lungs = np.zeros((hs, ws), np.uint8)
+    for cx in (0.33, 0.67):  # the phantom's lung fields (make_object)
+        lungs |= (np.sqrt(((u - cx) / 0.11) ** 2 + ((v - 0.36) / 0.17) ** 2) < 1).astype(np.uint8)
+    size = (shape[1], shape[0])
+    lung = cv2.warpPerspective(lungs, truth.homography, size, flags=cv2.INTER_NEAREST)
+    attenuation = cv2.warpPerspective(truth.attenuation, truth.homography, size, flags=cv2.INTER_LINEAR)
+    outside = cv2.distanceTransform((1 - lung).astype(np.uint8), cv2.DIST_L2, 5)
+    inside = cv2.distanceTransform(lung, cv2.DIST_L2, 5)
+    soft = (attenuation > 1.05) & (attenuation < 1.6)
+    scale = shape[1] / 1800
+
+    def probe(display: np.ndarray) -> tuple[float, float]:
+        def ring(a, b):
+            return float(display[(outside > a * scale) & (outside <= b * scale) & soft].mean())
+
+        band = max(ring(a, a + 6) for a in range(3, 60, 6)) - ring(70, 100)
+        interior = display[(inside > 2) & (lung > 0)]
+        return band, float(np.mean((interior <= 0.5 / 255) | (interior >= 254.5 / 255)))
+
+    return frames, probe
+
+
+def params_for(setting: dict):
+    from napari_dslrxr.core.params import PipelineParams
+
+    params = PipelineParams()
+    for key, value in setting.items():
+        section, name = key.split(".")
+        setattr(getattr(params, section), name, value)
+    return params
+
+
+def main() -> int:
+    from napari_dslrxr.core.io import read_image
+    from napari_dslrxr.core.pipeline import enhance_radiograph, process_frame
+    from napari_dslrxr.core.stages.collimation import detect_collimation
+
+    frames, probe = demo_halo_probe()
+    radiographs = {}
+    for name in ("RG1_UNCR", "RG3_UNCR"):
+        path = DATA / "cr_dicom" / f"{name}.dcm"
+        if path.exists():
+            image = read_image(path).data.astype(np.float32)
+            field = detect_collimation(image)
+            shown = stretch(image, field.mask)
+            crop = inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
+            radiographs[name] = (image, shown, crop, find_flat_patch(shown, crop=crop))
+    rows = {}
+    for label, setting in SETTINGS.items():
+        params = params_for(setting)
+        result = process_frame(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark], params=params)
+        band, interior = probe(result.display)
+        row = {"setting": setting, "demo_bright_band": round(band, 4), "demo_lung_interior_clipped": round(interior, 4)}
+        for name, (image, shown, crop, patch) in radiographs.items():
+            ours = enhance_radiograph(image, params)
+            g_in, g_ours = gcf(shown[crop]), gcf(ours[crop])
+            _, clahe_out, g_clahe = clahe_at_gcf(shown, g_ours, crop)
+            noise_in = highpass_std(shown, patch)
+            row[name] = {"gcf_input": round(g_in, 3), "gcf_ours": round(g_ours, 3), "gcf_clahe": round(g_clahe, 3),
+                         "noise_ratio_ours": round(highpass_std(ours, patch) / noise_in, 3),
+                         "noise_ratio_clahe": round(highpass_std(clahe_out, patch) / noise_in, 3)}
+        rows[label] = row
+        print(label, row, flush=True)
+    record("eval_halo", {"settings": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
