@@ -13,10 +13,10 @@ from .neighbourhoods import (
     _flat_indices,
     _masked_median_at,
     _ring_median_at,
+    _component_values_at,
+    _FullMap,
     _sorted_unique,
     _square_ring_spread,
-    _Stacked,
-    _stacked_medians,
     _subsample_indices,
     _window_offsets,
 )
@@ -138,15 +138,15 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         scratch.ravel()[pulses] = 0
         keep = np.isfinite(repl)
         x.ravel()[pulses[keep]] = repl[keep].astype(_FLOAT)
-        fast_residual.flat[fast_residual.index(pulses)] = 0.0  # replaced: no longer busy (texture guard)
+        fast_residual.flat[pulses] = 0.0  # replaced: no longer busy (texture guard)
         mask_total.ravel()[pulses] = True
         dr, dc = _window_offsets(2 * reach + 1)
-        to_check = _sorted_unique(_flat_indices(rows, cols, dr, dc, (h, w)))
+        to_check = _sorted_unique(_flat_indices(rows, cols, dr, dc, (h, w)), h * w)
     return x, mask_total, model
 
 
 def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, count: int,
-                      photon_counting: bool, x: np.ndarray, fast_residual: "_Stacked") -> np.ndarray:
+                      photon_counting: bool, x: np.ndarray, fast_residual: "_FullMap") -> np.ndarray:
     """Flat indices of about ``count`` pixels in the flattest half of the image.
 
     Texture and edges inflate the residual and would bias the noise fit
@@ -169,9 +169,8 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
     if candidates.size < 32:
         return candidates
     rows, cols = np.divmod(candidates, w)
-    median = _stacked_medians(components, shape)
-    around = median.around(rows, cols, np.array([0, 0, 1, -1]), np.array([1, -1, 0, 0]))
-    del median
+    around = _component_values_at(components, rows[:, None] + np.array([0, 0, 1, -1]),
+                                  cols[:, None] + np.array([1, -1, 0, 0]))
     slope = np.abs(around[:, 0] - around[:, 1]) + np.abs(around[:, 2] - around[:, 3])
     ring_dr = np.array([-3, -3, -3, 0, 0, 3, 3, 3])
     ring_dc = np.array([-3, 0, 3, -3, 3, -3, 0, 3])
@@ -196,9 +195,9 @@ def _exact_residual(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: 
 
 
 def _fast_residual(components: list[_Component], shape, circular: bool,
-                   residual_weight: np.ndarray | None) -> _Stacked:
+                   residual_weight: np.ndarray | None) -> _FullMap:
     """Residual of every pixel to its fast detection median (float32, weighted like the test)."""
-    residual = _Stacked(shape, components[0].step)
+    residual = _FullMap(shape, components[0].step)
     for comp in components:
         d = residual.part(comp)
         np.subtract(comp.values, comp.median, out=d)
@@ -210,7 +209,7 @@ def _fast_residual(components: list[_Component], shape, circular: bool,
 
 
 def _prefilter(components: list[_Component], model: _NoiseModel, params: ImpulseParams,
-               residual: _Stacked) -> np.ndarray:
+               residual: _FullMap) -> np.ndarray:
     """Flat indices of pulse candidates from the residuals to the cheap centre-including medians.
 
     Nearly a superset of the pulses of the exact test (see ``_PREFILTER_FRACTION``): the
@@ -247,7 +246,7 @@ def _prefilter(components: list[_Component], model: _NoiseModel, params: Impulse
     return np.concatenate(found)
 
 
-def _in_texture(residual: _Stacked, pixels: np.ndarray, x: np.ndarray, model: "_NoiseModel",
+def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_NoiseModel",
                 reference: np.ndarray | None = None, ignore: np.ndarray | None = None,
                 chunk: int = 65536) -> np.ndarray:
     """True where the annulus around a pixel is busier than a pulse's can be (texture guard).
@@ -319,7 +318,7 @@ def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, param
 def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: ImpulseParams,
                   valid_flat: np.ndarray | None, circular: bool,
                   residual_weight: np.ndarray | None, scratch: np.ndarray,
-                  fast_residual: _Stacked, near_scratch: np.ndarray) -> np.ndarray:
+                  fast_residual: _FullMap, near_scratch: np.ndarray) -> np.ndarray:
     """Add neighbours of detected pulses that are pulses against their background.
 
     Each round tests the ring of pixels next to the pulses against the median of the
@@ -351,7 +350,7 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
     near_flat[near_marked[0]] = 1
     for _ in range(params.max_patch_px):
         rows, cols = np.divmod(pulses, w)
-        ring = _sorted_unique(_flat_indices(rows, cols, dr8, dc8, (h, w)))
+        ring = _sorted_unique(_flat_indices(rows, cols, dr8, dc8, (h, w)), h * w)
         ring = ring[marks[ring] == 0]
         if valid_flat is not None:
             ring = ring[valid_flat[ring]]

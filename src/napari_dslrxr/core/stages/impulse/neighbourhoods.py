@@ -31,7 +31,7 @@ class _Component:
 
     def to_flat(self, flat_in_component: np.ndarray, width: int) -> np.ndarray:
         """Flat indices in the full image of flat indices in this component."""
-        rows, cols = np.divmod(flat_in_component, self.values.shape[1])
+        rows, cols = np.divmod(flat_in_component, self.median.shape[1])
         return (self.r0 + self.step * rows) * width + (self.c0 + self.step * cols)
 
 
@@ -113,12 +113,18 @@ def _square_ring_spread(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, radiu
     return math.sqrt(2.0) * IQR_TO_SIGMA * (pairs[:, (3 * (n - 1)) // 4] - pairs[:, (n - 1) // 4])
 
 
-def _sorted_unique(indices: np.ndarray) -> np.ndarray:
+def _sorted_unique(indices: np.ndarray, size: int | None = None) -> np.ndarray:
     """Sorted distinct values of an integer array (same result as ``np.unique``).
 
     numpy 2's hash-based ``np.unique`` took about 15x longer than sort-and-compare on the
-    neighbour-index arrays of a 24-megapixel frame.
+    neighbour-index arrays of a 24-megapixel frame. With ``size`` (all values are below
+    it) and many values, a bitmap of ``size`` flags is used instead of the sort (half the
+    time from a few per cent of ``size`` on).
     """
+    if size is not None and indices.size * 32 > size:
+        flags = np.zeros(size, bool)
+        flags[indices.ravel()] = True
+        return np.flatnonzero(flags)
     values = np.sort(indices, axis=None)
     if values.size == 0:
         return values
@@ -204,60 +210,44 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
     return (out, spread) if with_spread else out
 
 
-class _Stacked:
-    """A per-pixel map stored component by component: (components, h/step, w/step), float32.
+class _FullMap:
+    """A per-pixel float32 map of a channel, filled component by component.
 
-    The fast detection works on polyphase components; keeping its maps in that layout
-    avoids strided writes of whole frames. ``at`` reads the values at full-image flat indices.
+    The fast detection works on polyphase components; ``part`` is the (strided, writable)
+    view of one component's pixels, so each component writes its block in place, and reads
+    at full-image flat indices are plain gathers (the neighbour indices the texture guard
+    builds anyway serve both the channel and this map).
     """
 
     def __init__(self, shape, step: int):
         self._height, self.width = shape
         self.step = step
-        self.rows, self.cols = -(-shape[0] // step), -(-shape[1] // step)
-        self.data = np.zeros((step * step, self.rows, self.cols), _FLOAT)
+        self.data = np.zeros(shape, _FLOAT)
         self.flat = self.data.reshape(-1)
 
     def part(self, comp: "_Component") -> np.ndarray:
-        """The (writable) block of one component, shaped like its values."""
-        k = comp.r0 * self.step + comp.c0
-        return self.data[k, :comp.values.shape[0], :comp.values.shape[1]]
-
-    def index(self, flat: np.ndarray) -> np.ndarray:
-        if self.step == 1:
-            return flat
-        rows, cols = np.divmod(flat, self.width)
-        return self._index(rows, cols)
-
-    def _index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        if self.step == 1:
-            return rows * self.width + cols
-        out = (rows & 1) * (2 * self.rows * self.cols)
-        out += (cols & 1) * (self.rows * self.cols)
-        out += (rows >> 1) * self.cols
-        out += cols >> 1
-        return out
+        """The (writable) view of one component's pixels, shaped like its median."""
+        return self.data[comp.r0::self.step, comp.c0::self.step]
 
     def at(self, flat: np.ndarray) -> np.ndarray:
-        return self.flat[self.index(flat)]
+        return self.flat[flat]
 
     def around(self, rows: np.ndarray, cols: np.ndarray, dr: np.ndarray, dc: np.ndarray) -> np.ndarray:
         """Values at (rows + dr, cols + dc), shape (N, K), borders replicated."""
-        reach = int(max(np.abs(dr).max(), np.abs(dc).max()))
-        rr = rows.astype(np.intp)[:, None] + dr[None, :]
-        cc = cols.astype(np.intp)[:, None] + dc[None, :]
-        near_border = ((rows < reach) | (rows >= self._height - reach)
-                       | (cols < reach) | (cols >= self.width - reach))
-        if near_border.any():
-            rr[near_border] = np.clip(rr[near_border], 0, self._height - 1)
-            cc[near_border] = np.clip(cc[near_border], 0, self.width - 1)
-        return self.flat[self._index(rr, cc)]
+        return self.flat[_flat_indices(rows, cols, dr, dc, (self._height, self.width))]
 
 
-def _stacked_medians(components: list[_Component], shape) -> _Stacked:
-    out = _Stacked(shape, components[0].step)
+def _component_values_at(components: list[_Component], rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """The fast detection median at full-image (rows, cols) (any shape; border replicated)."""
+    h = sum(comp.median.shape[0] for comp in components if comp.c0 == 0)
+    w = sum(comp.median.shape[1] for comp in components if comp.r0 == 0)
+    rows = np.clip(rows, 0, h - 1)
+    cols = np.clip(cols, 0, w - 1)
+    out = np.empty(rows.shape, _FLOAT)
+    step = components[0].step
     for comp in components:
-        out.part(comp)[...] = comp.median
+        on = ((rows % step) == comp.r0) & ((cols % step) == comp.c0)
+        out[on] = comp.median[rows[on] // step, cols[on] // step]
     return out
 
 
