@@ -62,6 +62,11 @@ _TEXTURE_NOISY_FRACTION = 0.35
 #: the fitted gain by up to 20 %.
 _BUSY_SAMPLE_FACTOR = 1.5
 
+#: Pixels whose neighbourhoods are gathered at once (the (N, K) index and value arrays of
+#: the exact test and the texture guard stay at a few MB; a later pass on a frame with 1 %
+#: of pulses re-tests millions of pixels, and whole-set arrays held the peak memory).
+_CHUNK_PX = 8192
+
 
 def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_counting: bool,
                    polarity: int, valid: np.ndarray | None = None, circular: bool = False,
@@ -92,12 +97,13 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     if value_range is None:
         value_range = float(x.max() - x.min())
     value_range = max(value_range, 1e-12)
-    components = _detection_components(x, params.window_px)
-    fast_residual = _fast_residual(components, (h, w), circular, residual_weight)
+    components, fast_residual = _fast_residual(x, params.window_px, circular, residual_weight)
     fit_valid = valid if fit_region is None else (fit_region if valid is None else valid & fit_region)
     pick = _flat_area_sample(components, fit_valid, params.em_samples, photon_counting, x, fast_residual)
     if pick.size < 16 and fit_region is not None:  # too few: fit on every valid pixel
         pick = _flat_area_sample(components, valid, params.em_samples, photon_counting, x, fast_residual)
+    median_max = max(float(comp.median.max()) for comp in components)
+    del components  # the prefilter reads the median as x - residual (memory: 24 Mpx frames)
     if pick.size < 16:
         return x, mask_total, None
     d_fit, m_fit = _exact_residual(x, *np.divmod(pick, w), params.window_px, circular, residual_weight)
@@ -117,8 +123,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     to_check = None
     for _ in range(passes):
         if to_check is None:
-            candidates = _prefilter(components, model, params, fast_residual)
-            del components
+            candidates = _prefilter(x, median_max, model, params, fast_residual)
         else:
             candidates = to_check
         if valid_flat is not None:
@@ -169,12 +174,16 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
     if candidates.size < 32:
         return candidates
     rows, cols = np.divmod(candidates, w)
-    around = _component_values_at(components, rows[:, None] + np.array([0, 0, 1, -1]),
-                                  cols[:, None] + np.array([1, -1, 0, 0]))
-    slope = np.abs(around[:, 0] - around[:, 1]) + np.abs(around[:, 2] - around[:, 3])
     ring_dr = np.array([-3, -3, -3, 0, 0, 3, 3, 3])
     ring_dc = np.array([-3, 0, 3, -3, 3, -3, 0, 3])
-    busy = np.abs(fast_residual.around(rows, cols, ring_dr, ring_dc)).mean(axis=1)
+    slope = np.empty(candidates.size, _FLOAT)
+    busy = np.empty(candidates.size, _FLOAT)
+    for start in range(0, candidates.size, _CHUNK_PX):  # bounded (N, 8) temporaries
+        part = slice(start, start + _CHUNK_PX)
+        around = _component_values_at(components, rows[part, None] + np.array([0, 0, 1, -1]),
+                                      cols[part, None] + np.array([1, -1, 0, 0]))
+        slope[part] = np.abs(around[:, 0] - around[:, 1]) + np.abs(around[:, 2] - around[:, 3])
+        busy[part] = np.abs(fast_residual.around(rows[part], cols[part], ring_dr, ring_dc)).mean(axis=1)
     if photon_counting:
         scale = np.sqrt(np.abs(x.ravel()[candidates] - fast_residual.at(candidates)) + 1.0)
         slope = slope / scale
@@ -194,46 +203,56 @@ def _exact_residual(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: 
     return d, med
 
 
-def _fast_residual(components: list[_Component], shape, circular: bool,
-                   residual_weight: np.ndarray | None) -> _FullMap:
-    """Residual of every pixel to its fast detection median (float32, weighted like the test)."""
-    residual = _FullMap(shape, components[0].step)
-    for comp in components:
+def _fast_residual(x: np.ndarray, size_px: int, circular: bool,
+                   residual_weight: np.ndarray | None) -> tuple[list[_Component], _FullMap]:
+    """The fast detection medians (components) and the residual of every pixel to its own
+    (float32, weighted like the test)."""
+    components = []
+    residual = None
+    for comp, values in _detection_components(x, size_px):
+        if residual is None:
+            residual = _FullMap(x.shape, comp.step)
         d = residual.part(comp)
-        np.subtract(comp.values, comp.median, out=d)
+        np.subtract(values, comp.median, out=d)
+        del values
         if circular:
             d -= np.rint(d)
         if residual_weight is not None:
             d *= residual_weight[comp.r0::comp.step, comp.c0::comp.step]
-    return residual
+        components.append(comp)
+    return components, residual
 
 
-def _prefilter(components: list[_Component], model: _NoiseModel, params: ImpulseParams,
+def _prefilter(x: np.ndarray, median_max: float, model: _NoiseModel, params: ImpulseParams,
                residual: _FullMap) -> np.ndarray:
     """Flat indices of pulse candidates from the residuals to the cheap centre-including medians.
 
     Nearly a superset of the pulses of the exact test (see ``_PREFILTER_FRACTION``): the
     residual to the fast median must exceed
     ``_PREFILTER_FRACTION`` of the smallest threshold the exact test can use at that level
-    (the log term of the threshold is bounded by its value at the largest variance), so the
-    full-image work is a handful of array operations without logarithms.
+    (the log term of the threshold is bounded by its value at the largest variance, that
+    at ``median_max``, the largest fast median), so the full-image work is a handful of
+    array operations without logarithms, in blocks of rows (bounded temporaries). Where
+    the variance depends on the level (photon-counting channels: never weighted or
+    circular), the fast median is ``x - residual``.
     """
-    width = residual.width
+    height, width = x.shape
     const = model.log_odds_constant(params.posterior_threshold, model.pulse_rate)
     fraction2 = _PREFILTER_FRACTION ** 2
     if model.a > 0:
-        m_max = max(float(comp.median.max()) for comp in components)
-        factor = const - math.log(max(model.a * m_max + model.b, model.var_floor))
+        factor = const - math.log(max(model.a * median_max + model.b, model.var_floor))
     else:
         s2 = max(model.b, model.var_floor)
         factor = const - math.log(s2)
     found = []
-    for comp in components:
-        d = residual.part(comp).copy()
+    rows_per_block = max(1, (1 << 20) // max(width, 1))
+    for r0 in range(0, height, rows_per_block):
+        d = residual.data[r0:r0 + rows_per_block].copy()
         if factor <= 0:  # degenerate fit: test every pixel exactly
             candidates = d * model.polarity > 0 if model.polarity else d != 0
         elif model.a > 0:
-            s2 = np.multiply(comp.median, _FLOAT(model.a * fraction2 * factor), dtype=_FLOAT)
+            s2 = np.subtract(x[r0:r0 + rows_per_block], d, dtype=_FLOAT)
+            s2 *= _FLOAT(model.a * fraction2 * factor)
             s2 += _FLOAT(model.b * fraction2 * factor)
             np.maximum(s2, _FLOAT(model.var_floor * fraction2 * factor), out=s2)
             candidates = d * _FLOAT(model.polarity) > 0 if model.polarity else None
@@ -242,13 +261,13 @@ def _prefilter(components: list[_Component], model: _NoiseModel, params: Impulse
         else:
             threshold = _FLOAT(_PREFILTER_FRACTION * math.sqrt(s2 * factor))
             candidates = d * _FLOAT(model.polarity) > threshold if model.polarity else np.abs(d) > threshold
-        found.append(comp.to_flat(np.flatnonzero(candidates), width))
+        found.append(np.flatnonzero(candidates) + r0 * width)
     return np.concatenate(found)
 
 
 def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_NoiseModel",
                 reference: np.ndarray | None = None, ignore: np.ndarray | None = None,
-                chunk: int = 65536) -> np.ndarray:
+                chunk: int = _CHUNK_PX) -> np.ndarray:
     """True where the annulus around a pixel is busier than a pulse's can be (texture guard).
 
     ``residual``: the fast-median residual map of :func:`_prefilter`; ``pixels``: flat
@@ -279,7 +298,7 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
         # At least the noise-relative level: a weak pulse or rim is not texture for noise.
         level = np.maximum(np.abs(own) * _BUSY_RELATIVE, _BUSY_SIGMAS * np.sqrt(own_noise2)).astype(_FLOAT)
         idx = _flat_indices(rows, cols, dr, dc, x.shape)
-        around_signed = residual.around(rows, cols, dr, dc)
+        around_signed = residual.flat[idx]
         around = np.abs(around_signed)
         counted = np.ones(idx.shape, bool) if ignore is None else ignore[idx] == 0
         n_counted = np.count_nonzero(counted, axis=1)
@@ -300,19 +319,23 @@ def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, param
     """The candidates (flat indices) that are pulses by the posterior test."""
     if candidates.size == 0:
         return candidates
-    rows, cols = np.divmod(candidates, x.shape[1])
-    d, med = _exact_residual(x, rows, cols, params.window_px, circular, None)
-    spread = _square_ring_spread(x, rows, cols, params.max_patch_px)
-    if residual_weight is not None:
-        weight = residual_weight[rows, cols]
-        d *= weight
-        spread *= weight
-    # Structure guard: where the background around the candidate spreads far more than the
-    # noise (an edge, the corner of the screen), the residual is not Gaussian around the
-    # median; the variance is then at least (spread / _SEED_SPREAD_TOLERANCE)^2. The spread
-    # is taken just outside the largest patch, so the patch itself never inflates it.
-    spread /= _SEED_SPREAD_TOLERANCE
-    return candidates[model.is_pulse(d, med, params.posterior_threshold, min_variance=spread * spread)]
+    pulse = np.zeros(candidates.size, bool)
+    for start in range(0, candidates.size, _CHUNK_PX):  # bounded temporaries (later passes test many)
+        part = slice(start, start + _CHUNK_PX)
+        rows, cols = np.divmod(candidates[part], x.shape[1])
+        d, med = _exact_residual(x, rows, cols, params.window_px, circular, None)
+        spread = _square_ring_spread(x, rows, cols, params.max_patch_px)
+        if residual_weight is not None:
+            weight = residual_weight[rows, cols]
+            d *= weight
+            spread *= weight
+        # Structure guard: where the background around the candidate spreads far more than the
+        # noise (an edge, the corner of the screen), the residual is not Gaussian around the
+        # median; the variance is then at least (spread / _SEED_SPREAD_TOLERANCE)^2. The spread
+        # is taken just outside the largest patch, so the patch itself never inflates it.
+        spread /= _SEED_SPREAD_TOLERANCE
+        pulse[part] = model.is_pulse(d, med, params.posterior_threshold, min_variance=spread * spread)
+    return candidates[pulse]
 
 
 def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: ImpulseParams,

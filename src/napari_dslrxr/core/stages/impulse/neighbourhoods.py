@@ -14,6 +14,8 @@ from .params import _FLOAT
 #: must hold to be used; the first window that qualifies is used.
 _REPLACEMENT_WINDOWS_PX = (3, 5, 7, 9)
 _REPLACEMENT_MIN_GOOD = (5, 8, 12, 12)
+#: Pixels whose windows are gathered and sorted at once (bounded temporaries).
+_MEDIAN_CHUNK_PX = 16384
 
 #: Standard deviation of a Gaussian per unit of its interquartile range (1 / 1.349).
 IQR_TO_SIGMA = 1.0 / 1.349
@@ -21,12 +23,11 @@ IQR_TO_SIGMA = 1.0 / 1.349
 
 @dataclass
 class _Component:
-    """A polyphase component of a channel (rows r0::step, cols c0::step) and its 3x3 median."""
+    """A polyphase component of a channel (rows r0::step, cols c0::step): its 3x3 median."""
 
     r0: int
     c0: int
     step: int
-    values: np.ndarray
     median: np.ndarray
 
     def to_flat(self, flat_in_component: np.ndarray, width: int) -> np.ndarray:
@@ -35,26 +36,24 @@ class _Component:
         return (self.r0 + self.step * rows) * width + (self.c0 + self.step * cols)
 
 
-def _detection_components(x: np.ndarray, size_px: int) -> list[_Component]:
-    """The components the fast detection median works on, each with its median (float32).
+def _detection_components(x: np.ndarray, size_px: int):
+    """The components the fast detection median works on: (component, its values) pairs.
 
     ``size_px`` 3: the whole image and its 3x3 median. 5: the *sparse* 5x5 median over the
     centre and the eight pixels two steps away (rows and columns -2, 0, +2), computed as the
     3x3 median of each of the four polyphase components: a patch of up to 3x3 px around the
     centre holds only one of its nine samples, so the median stays on the background, at the
     cost of one 3x3 median. Both include the centre (cv2.medianBlur), replicated border.
+    Yields one component at a time, with a contiguous float32 copy of its values that the
+    caller may drop once used (only the medians are kept: memory on 24 Mpx frames).
     """
     import cv2
 
-    if size_px == 3:
-        values = np.ascontiguousarray(x, dtype=_FLOAT)
-        return [_Component(0, 0, 1, values, cv2.medianBlur(values, 3))]
-    components = []
-    for r0 in (0, 1):
-        for c0 in (0, 1):
-            values = np.ascontiguousarray(x[r0::2, c0::2], dtype=_FLOAT)
-            components.append(_Component(r0, c0, 2, values, cv2.medianBlur(values, 3)))
-    return components
+    step = 1 if size_px == 3 else 2
+    for r0 in range(step):
+        for c0 in range(step):
+            values = np.ascontiguousarray(x[r0::step, c0::step], dtype=_FLOAT)
+            yield _Component(r0, c0, step, cv2.medianBlur(values, 3)), values
 
 
 #: Batcher's odd-even merge sort of 8 values (19 compare-exchanges), used column-wise.
@@ -181,13 +180,23 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
     excluded_flat = np.ascontiguousarray(excluded).ravel()
     out = np.full(rows.shape, np.nan)
     spread = np.full(rows.shape, np.nan) if with_spread else None
+    for start in range(0, rows.size, _MEDIAN_CHUNK_PX):  # bounded (N, window) temporaries
+        part = slice(start, start + _MEDIAN_CHUNK_PX)
+        _masked_median_chunk(x_flat, x.shape, excluded_flat, rows[part], cols[part], smallest_px, symmetric,
+                             out[part], None if spread is None else spread[part])
+    return (out, spread) if with_spread else out
+
+
+def _masked_median_chunk(x_flat, shape, excluded_flat, rows, cols, smallest_px, symmetric, out, spread):
+    """:func:`_masked_median_at` for one chunk of pixels, written into ``out`` and ``spread``."""
+    with_spread = spread is not None
     todo = np.arange(rows.size)
     for size, min_good in zip(_REPLACEMENT_WINDOWS_PX, _REPLACEMENT_MIN_GOOD, strict=True):
         if todo.size == 0:
             break
         if size < smallest_px:
             continue
-        flat = _window_flat_indices(rows[todo], cols[todo], size, x.shape)
+        flat = _window_flat_indices(rows[todo], cols[todo], size, shape)
         vals = x_flat[flat].astype(_FLOAT, copy=False)
         bad = excluded_flat[flat] != 0
         if symmetric:
@@ -199,15 +208,14 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
         idx = np.nonzero(enough)[0]
         if idx.size:
             n = good_count[idx]
-            lo = np.take_along_axis(vals[idx], ((n - 1) // 2)[:, None], axis=1)[:, 0]
-            hi = np.take_along_axis(vals[idx], (n // 2)[:, None], axis=1)[:, 0]
+            lo = vals[idx, (n - 1) // 2]
+            hi = vals[idx, n // 2]
             out[todo[idx]] = 0.5 * (lo.astype(np.float64) + hi)
             if with_spread:
-                q1 = np.take_along_axis(vals[idx], ((n - 1) // 4)[:, None], axis=1)[:, 0]
-                q3 = np.take_along_axis(vals[idx], ((3 * (n - 1)) // 4)[:, None], axis=1)[:, 0]
+                q1 = vals[idx, (n - 1) // 4]
+                q3 = vals[idx, (3 * (n - 1)) // 4]
                 spread[todo[idx]] = IQR_TO_SIGMA * (q3.astype(np.float64) - q1)
         todo = todo[~enough]
-    return (out, spread) if with_spread else out
 
 
 class _FullMap:
