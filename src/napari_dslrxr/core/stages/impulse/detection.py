@@ -178,8 +178,8 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
     ring_dc = np.array([-3, 0, 3, -3, 3, -3, 0, 3])
     slope = np.empty(candidates.size, _FLOAT)
     busy = np.empty(candidates.size, _FLOAT)
-    for start in range(0, candidates.size, _CHUNK_PX):  # bounded (N, 8) temporaries
-        part = slice(start, start + _CHUNK_PX)
+    for start in range(0, candidates.size, 8 * _CHUNK_PX):  # bounded (N, 8) temporaries
+        part = slice(start, start + 8 * _CHUNK_PX)
         around = _component_values_at(components, rows[part, None] + np.array([0, 0, 1, -1]),
                                       cols[part, None] + np.array([1, -1, 0, 0]))
         slope[part] = np.abs(around[:, 0] - around[:, 1]) + np.abs(around[:, 2] - around[:, 3])
@@ -212,13 +212,13 @@ def _fast_residual(x: np.ndarray, size_px: int, circular: bool,
     for comp, values in _detection_components(x, size_px):
         if residual is None:
             residual = _FullMap(x.shape, comp.step)
-        d = residual.part(comp)
-        np.subtract(values, comp.median, out=d)
-        del values
+        d = np.subtract(values, comp.median, out=values)  # contiguous work, one strided copy
         if circular:
             d -= np.rint(d)
         if residual_weight is not None:
             d *= residual_weight[comp.r0::comp.step, comp.c0::comp.step]
+        residual.part(comp)[...] = d
+        del values, d
         components.append(comp)
     return components, residual
 

@@ -246,17 +246,19 @@ class _FullMap:
 
 
 def _component_values_at(components: list[_Component], rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """The fast detection median at full-image (rows, cols) (any shape; border replicated)."""
+    """The fast detection median at full-image (rows, cols) (same shape; border replicated)."""
+    step = components[0].step
+    shape = np.broadcast(rows, cols).shape
     h = sum(comp.median.shape[0] for comp in components if comp.c0 == 0)
     w = sum(comp.median.shape[1] for comp in components if comp.r0 == 0)
-    rows = np.clip(rows, 0, h - 1)
-    cols = np.clip(cols, 0, w - 1)
-    out = np.empty(rows.shape, _FLOAT)
-    step = components[0].step
-    for comp in components:
-        on = ((rows % step) == comp.r0) & ((cols % step) == comp.c0)
-        out[on] = comp.median[rows[on] // step, cols[on] // step]
-    return out
+    rows = np.clip(rows, 0, h - 1).ravel()
+    cols = np.clip(cols, 0, w - 1).ravel()
+    phase = (rows % step) * step + (cols % step)  # components are in row-major phase order
+    out = np.empty(rows.size, _FLOAT)
+    for k, comp in enumerate(components):
+        sel = np.flatnonzero(phase == k)
+        out[sel] = comp.median.ravel()[(rows[sel] // step) * comp.median.shape[1] + cols[sel] // step]
+    return out.reshape(shape)
 
 
 def _subsample_indices(n: int, count: int) -> np.ndarray:
