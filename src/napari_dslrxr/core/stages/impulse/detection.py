@@ -212,7 +212,9 @@ def _fast_residual(x: np.ndarray, size_px: int, circular: bool,
     for comp, values in _detection_components(x, size_px):
         if residual is None:
             residual = _FullMap(x.shape, comp.step)
-        d = np.subtract(values, comp.median, out=values)  # contiguous work, one strided copy
+        # Contiguous work, one strided copy; in the component's own buffer unless that is x
+        # itself (a 3x3 window on a contiguous float32 channel).
+        d = np.subtract(values, comp.median, out=None if np.may_share_memory(values, x) else values)
         if circular:
             d -= np.rint(d)
         if residual_weight is not None:
