@@ -94,18 +94,32 @@ def grey_frame(height: int, width: int, seed: int = 8, pulse_fraction: float = 0
     return np.repeat(grey[..., None], 3, axis=2)
 
 
+#: Runs the command from a small process and reports its wall time, CPU time and peak RSS.
+#: Linux keeps the resident high-water mark across fork and exec: a command started
+#: directly from this process (which holds the frames, about 1 GB) reported this process's
+#: peak as its own. Started from a small launcher, it inherits only the launcher's.
+_LAUNCHER = """
+import json, os, subprocess, sys, time
+t0 = time.perf_counter()
+proc = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+_, status, usage = os.wait4(proc.pid, 0)
+wall = time.perf_counter() - t0
+print(json.dumps({"code": os.waitstatus_to_exitcode(status), "wall": wall, "cpu": usage.ru_utime + usage.ru_stime,
+                  "rss_mb": usage.ru_maxrss / 1024.0, "stderr": proc.stderr.read().decode()}))
+"""
+
+
 def run_command(args: list[str]) -> tuple[float, float, float]:
     """Run ``dslrxr`` in its own process: (wall s, CPU s of the process, its peak RSS MiB)."""
+    import json
     import subprocess
 
-    t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", *args],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"dslrxr {' '.join(args)} failed: {proc.stderr.read().decode()}")
-    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0
+    done = subprocess.run([sys.executable, "-c", _LAUNCHER, sys.executable, "-m", "napari_dslrxr.cli", *args],
+                          capture_output=True, text=True, check=True)
+    report = json.loads(done.stdout)
+    if report["code"] != 0:
+        raise RuntimeError(f"dslrxr {' '.join(args)} failed: {report['stderr']}")
+    return report["wall"], report["cpu"], report["rss_mb"]
 
 
 def main() -> None:
