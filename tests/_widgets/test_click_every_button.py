@@ -32,8 +32,6 @@ from napari_dslrxr import _sample_data as samples
 from napari_dslrxr._cli.view import plugin_widget_names, populate_viewer
 from napari_dslrxr._widgets import contrast as contrast_module
 from napari_dslrxr._widgets import deconvolution as deconvolution_module
-from napari_dslrxr._widgets import flatfield as flatfield_module
-from napari_dslrxr._widgets import impulse as impulse_module
 from napari_dslrxr._widgets._common import EventLoopMonitor
 from napari_dslrxr.core.io import write_tiff
 from napari_dslrxr.core.psf import PSFModel, load_psf, save_psf
@@ -215,6 +213,25 @@ def gate(module, name: str, monkeypatch) -> threading.Event:
     return release
 
 
+def hold_halfway(panel, monkeypatch) -> threading.Event:
+    """Hold the core stage at its first progress report past half of its steps until the
+    returned event is set, so Cancel is clicked while the real stage certainly runs (nothing
+    of the core is replaced); after the hold, the panel's own callback stops it at its next
+    report. The event's ``reports`` lists the progress the stage reported."""
+    real = panel.callback
+    release = threading.Event()
+    release.reports = []
+
+    def held(*args):
+        release.reports.append(args)
+        real(*args)
+        if len(args) == 2 and 2 * args[0] >= args[1] and not release.is_set():
+            release.wait(20)
+
+    monkeypatch.setattr(panel, "callback", held)
+    return release
+
+
 def cancel_running(plugin: Plugin, widget_name: str, start: str, cancel: str, release: threading.Event | None,
                    result_layer: str) -> float:
     """Start a job, click Cancel while it runs; the widget is usable at once, the job's thread
@@ -266,8 +283,12 @@ def test_impulse_removal_buttons(plugin, monkeypatch, shots):
     widget._passes["H"].value = 5
     plugin.click(name, "Restore defaults")
     assert widget.get_params().passes_h == 3
-    release = gate(impulse_module, "remove_impulses", monkeypatch)
-    cancel_running(plugin, name, "Remove impulses", "Cancel", release, "DSLR radiograph cleaned")
+    # Cancel stops the core stage itself (its progress callback raises), promptly.
+    release = hold_halfway(widget._job, monkeypatch)
+    stopped_s = cancel_running(plugin, name, "Remove impulses", "Cancel", release, "DSLR radiograph cleaned")
+    assert stopped_s < 1.0, f"impulse removal ran on {stopped_s:.2f} s after Cancel"
+    done, total = release.reports[-1]
+    assert done < total, "the stage ran to its end"
     monkeypatch.undo()
     plugin.click(name, "Remove impulses")
     assert "DSLR radiograph cleaned" in plugin.viewer.layers
@@ -296,8 +317,11 @@ def test_flat_field_buttons(plugin, monkeypatch, tmp_path):
     widget._smoothing.value = 9.0
     plugin.click(name, "Restore defaults")
     assert widget.get_params().flat_smoothing_px == 4.0
-    release = gate(flatfield_module, "correct_with_layers", monkeypatch)
-    cancel_running(plugin, name, "Apply flat field", "Cancel", release, "DSLR radiograph flat-fielded")
+    release = hold_halfway(widget._job, monkeypatch)
+    stopped_s = cancel_running(plugin, name, "Apply flat field", "Cancel", release, "DSLR radiograph flat-fielded")
+    assert stopped_s < 1.0, f"the flat field ran on {stopped_s:.2f} s after Cancel"
+    done, total = release.reports[-1]
+    assert done < total, "the stage ran to its end"
     monkeypatch.undo()
     plugin.click(name, "Apply flat field")
     assert "DSLR radiograph flat-fielded" in layers

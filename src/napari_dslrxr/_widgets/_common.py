@@ -18,16 +18,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..core.errors import DslrxrError
+from ..core.errors import DslrxrError, WorkCancelled
 
 if TYPE_CHECKING:
     import napari
 
 _LOG = logging.getLogger(__name__)
-
-
-class WorkCancelled(DslrxrError):
-    """Raised inside a worker (e.g. from a core progress callback) when the user cancels."""
 
 
 # --------------------------------------------------------------------------- notifications

@@ -30,14 +30,15 @@ _DEBOUNCE_MS = 150
 
 
 def correct_with_layers(image: np.ndarray, flat: np.ndarray | None, dark: np.ndarray | None,
-                        params: FlatFieldParams) -> tuple[np.ndarray, int]:
+                        params: FlatFieldParams, progress=None) -> tuple[np.ndarray, int]:
     """Core call of the widget: prepare the reference and apply it (runs in the worker).
 
-    Returns the corrected float32 counts and the number of pulse pixels cleaned from the
-    reference frames.
+    ``progress``: the core's progress callback (the job panel's stops the preparation at
+    its next step when Cancel is pressed). Returns the corrected float32 counts and the
+    number of pulse pixels cleaned from the reference frames.
     """
     reference = prepare_flat_reference(image.shape, flats=[] if flat is None else [flat],
-                                       darks=[] if dark is None else [dark], params=params)
+                                       darks=[] if dark is None else [dark], params=params, progress=progress)
     return apply_flat_field(image, reference), reference.cleaned_pulses
 
 
@@ -168,7 +169,8 @@ class FlatFieldWidget(Container):
         self._apply.enabled = False
         self._readout.value = "running..."
         return run_in_worker(correct_with_layers, image, flat, dark, params, desc="flat field",
-                             on_returned=lambda out: self._show(layer, out, False), on_finished=self._done,
+                             progress=self._job.callback, on_returned=lambda out: self._show(layer, out, False),
+                             on_finished=self._done,
                              panel=self._job, readout=self._readout)
 
     def _done(self) -> None:

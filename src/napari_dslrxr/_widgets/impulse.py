@@ -110,7 +110,8 @@ class ImpulseWidget(Container):
         space = self._space.value
         self._run_button.enabled = False
         self._readout.value = "running..."
-        return run_in_worker(remove_impulses, image, params, space=space, desc="impulse removal",
+        return run_in_worker(remove_impulses, image, params, space=space, progress=self._job.callback,
+                             desc="impulse removal",
                              on_returned=lambda r: self._show(layer, r), on_finished=self._done,
                              panel=self._job, readout=self._readout)
 
