@@ -32,7 +32,8 @@ from napari_dslrxr import _sample_data as samples
 from napari_dslrxr._cli.view import plugin_widget_names, populate_viewer
 from napari_dslrxr._widgets import contrast as contrast_module
 from napari_dslrxr._widgets import deconvolution as deconvolution_module
-from napari_dslrxr._widgets._common import EventLoopMonitor
+from napari_dslrxr._widgets._common import EventLoopMonitor, viewer_camera
+from napari_dslrxr.core.psf.edge_images import MIN_ROI_PX
 from napari_dslrxr.core.io import write_tiff
 from napari_dslrxr.core.psf import PSFModel, load_psf, save_psf
 
@@ -131,8 +132,6 @@ class Plugin:
         """Only the ``visible`` layers shown, the widget's tab in front, the whole window
         saved at 1300x800; the canvas must show something (black = broken GL)."""
         from qtpy.QtWidgets import QApplication
-
-        from napari_dslrxr._widgets._common import viewer_camera
 
         viewer = self.viewer
         for layer in viewer.layers:
@@ -332,6 +331,33 @@ def rectangle(r0, c0, r1, c1):
     return np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float)
 
 
+def drag_rectangle(plugin: Plugin, shapes, r0: float, c0: float, r1: float, c1: float) -> None:
+    """Draw a rectangle with the mouse on the canvas (the Shapes layer in its rectangle mode):
+    press at data (r0, c0), move, release at (r1, c1); a new shape must result."""
+    from qtpy.QtCore import QPoint, Qt
+    from qtpy.QtTest import QTest
+
+    canvas = plugin.viewer.window._qt_viewer.canvas
+    transform = canvas.view.transform * canvas.view.scene.transform
+
+    def point(r, c) -> QPoint:
+        world = shapes.data_to_world((r, c))
+        x, y = transform.map([world[-1], world[-2]])[:2]
+        return QPoint(int(round(x)), int(round(y)))
+
+    assert shapes.mode == "add_rectangle"
+    before = len(shapes.data)
+    native = canvas.native
+    start, end = point(r0, c0), point(r1, c1)
+    QTest.mousePress(native, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, start)
+    for f in (0.25, 0.5, 0.75, 1.0):
+        QTest.mouseMove(native, start + (end - start) * f)
+        plugin.qtbot.wait(10)
+    QTest.mouseRelease(native, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, end)
+    plugin.qtbot.wait(20)
+    assert len(shapes.data) == before + 1, "the drag drew no rectangle"
+
+
 def test_psf_from_edges_buttons(plugin, tmp_path, shots):
     name, widget = "PSF from edges", plugin.widgets["PSF from edges"]
     viewer = plugin.viewer
@@ -345,13 +371,19 @@ def test_psf_from_edges_buttons(plugin, tmp_path, shots):
     plugin.click(name, "Draw ROIs on this image")
     shapes = viewer.layers["edge SOD 500 mm ROIs"]
     assert viewer.layers.selection.active is shapes and shapes.mode == "add_rectangle"
-    shapes.add_rectangles([rectangle(32, 32, 96, 96)])
-    # Too small an ROI is refused by name, not dropped.
-    shapes.add_rectangles([rectangle(40, 40, 45, 45)])
-    plugin.click(name, "Fit PSF", refused="ROI 2 on 'edge SOD 500 mm' is 5x5 px")
-    shapes.data = shapes.data[:1]
+    viewer.window.resize(1300, 800)
+    viewer_camera(viewer).center, viewer_camera(viewer).zoom = (0, 64, 64), 4.0  # the user zooms in
+    plugin.qtbot.wait(50)
+    drag_rectangle(plugin, shapes, 32, 32, 96, 96)
+    # Too small an ROI is refused by its number and the fit's minimum, not dropped: under 8 px
+    # and between 8 px and the minimum alike.
+    for side in (5, 12):
+        drag_rectangle(plugin, shapes, 40, 40, 40 + side, 40 + side)
+        texts = plugin.click(name, "Fit PSF", refused="ROI 2 on 'edge SOD 500 mm' is ")
+        assert f"draw it at least {MIN_ROI_PX}x{MIN_ROI_PX} px" in texts[-1] and f"{side}x{side} px" in texts[-1]
+        shapes.data = shapes.data[:1]
     # An ROI without an edge says so.
-    shapes.add_rectangles([rectangle(100, 0, 128, 40)])
+    drag_rectangle(plugin, shapes, 100, 0, 128, 40)
     plugin.click(name, "Fit PSF", refused="ROI 2 on 'edge SOD 500 mm': no edge found")
     assert "no edge found" in widget._readout.value  # the read-out does not stay at "fitting..."
     shapes.data = shapes.data[:1]
