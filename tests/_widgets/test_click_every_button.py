@@ -265,15 +265,19 @@ def test_dslrxr_view_docks_every_widget_and_no_preview_appears(plugin, shots):
     manifest = PluginManager.instance().get_manifest("napari-dslrxr")
     keys = {sample.key for sample in manifest.contributions.sample_data}
     assert keys == set(SAMPLE_KEYS) | set(SINGLE_SAMPLE_KEYS)
-    for key in SINGLE_SAMPLE_KEYS:
-        plugin.viewer.open_sample("napari-dslrxr", key)
     assert set(plugin.widgets) == set(plugin_widget_names()) and len(plugin.widgets) == 7
     plugin.qtbot.wait(300)  # longer than any preview debounce
     names = [layer.name for layer in plugin.viewer.layers]
     assert not [n for n in names if "preview" in n or "contrast" in n], names
     assert "DSLR radiograph" in names and "edge SOD 500 mm" in names and "simulated recording" in names
     plugin.check_notifications("opening the samples")
+    plugin.widgets["Impulse removal"]._image.value = plugin.viewer.layers["DSLR radiograph"]  # the user picks it
     plugin.snap(shots, "all_widgets", "Impulse removal", ["DSLR radiograph"])
+    for key in SINGLE_SAMPLE_KEYS:  # the single-frame sample commands work too (after the picture: no "[1]")
+        plugin.viewer.open_sample("napari-dslrxr", key)
+    plugin.qtbot.wait(300)
+    assert not [n for n in (layer.name for layer in plugin.viewer.layers) if "preview" in n or "contrast" in n]
+    plugin.check_notifications("opening the single samples")
 
 
 def test_impulse_removal_buttons(plugin, monkeypatch, shots):
