@@ -271,6 +271,18 @@ def cancel_running(plugin: Plugin, widget_name: str, start: str, cancel: str, re
     return stopped_s
 
 
+def cancel_inside_core(plugin: Plugin, widget_name: str, start: str, result_layer: str, monkeypatch) -> None:
+    """Cancel stops the core stage itself (its progress callback raises) within 1 s of the
+    click, before its last step, while it runs at its halfway report."""
+    release = hold_halfway(plugin.widgets[widget_name]._job, monkeypatch)
+    stopped_s = cancel_running(plugin, widget_name, start, "Cancel", release, result_layer)
+    assert release.stop_s < 1.0, f"{widget_name}: the core computed on {release.stop_s:.2f} s after Cancel"
+    assert stopped_s < 5.0, f"{widget_name}: the thread ended {stopped_s:.1f} s after Cancel"
+    done, total = release.reports[-1]
+    assert done < total, f"{widget_name}: the stage ran to its end"
+    monkeypatch.undo()
+
+
 def answer_file_dialog(file_edit, path) -> None:
     """The file picker's dialog returns ``path`` (None: the user closes it)."""
     file_edit._show_file_dialog = lambda *args, **kwargs: None if path is None else str(path)
@@ -307,14 +319,7 @@ def test_impulse_removal_buttons(plugin, monkeypatch, shots):
     widget._passes["H"].value = 5
     plugin.click(name, "Restore defaults")
     assert widget.get_params().passes_h == 3
-    # Cancel stops the core stage itself (its progress callback raises), promptly.
-    release = hold_halfway(widget._job, monkeypatch)
-    stopped_s = cancel_running(plugin, name, "Remove impulses", "Cancel", release, "DSLR radiograph cleaned")
-    assert release.stop_s < 1.0, f"impulse removal computed on {release.stop_s:.2f} s after Cancel"
-    assert stopped_s < 5.0, f"the impulse removal thread ended {stopped_s:.1f} s after Cancel"
-    done, total = release.reports[-1]
-    assert done < total, "the stage ran to its end"
-    monkeypatch.undo()
+    cancel_inside_core(plugin, name, "Remove impulses", "DSLR radiograph cleaned", monkeypatch)
     plugin.click(name, "Remove impulses")
     assert "DSLR radiograph cleaned" in plugin.viewer.layers
     assert "px replaced" in widget._readout.value and "done in" in widget._job.status.value
@@ -342,13 +347,7 @@ def test_flat_field_buttons(plugin, monkeypatch, tmp_path):
     widget._smoothing.value = 9.0
     plugin.click(name, "Restore defaults")
     assert widget.get_params().flat_smoothing_px == 4.0
-    release = hold_halfway(widget._job, monkeypatch)
-    stopped_s = cancel_running(plugin, name, "Apply flat field", "Cancel", release, "DSLR radiograph flat-fielded")
-    assert release.stop_s < 1.0, f"the flat field computed on {release.stop_s:.2f} s after Cancel"
-    assert stopped_s < 5.0, f"the flat field thread ended {stopped_s:.1f} s after Cancel"
-    done, total = release.reports[-1]
-    assert done < total, "the stage ran to its end"
-    monkeypatch.undo()
+    cancel_inside_core(plugin, name, "Apply flat field", "DSLR radiograph flat-fielded", monkeypatch)
     plugin.click(name, "Apply flat field")
     assert "DSLR radiograph flat-fielded" in layers
     plugin.check_all_clicked(name)
