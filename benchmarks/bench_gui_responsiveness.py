@@ -11,7 +11,10 @@ heartbeat (a 5 ms QTimer, ``EventLoopMonitor``) records the longest gap in three
 
 Each button is clicked ``REPEATS`` times (the first click adds the result layers, later ones
 update them in place); the worst gap per phase is kept. The load average is recorded: on a
-shared machine the GUI thread gets a smaller share of the CPU and every gap grows.
+shared machine the GUI thread gets a smaller share of the CPU and every gap grows. The
+baseline is the same heartbeat on the idle viewer (nothing running) for ``IDLE_S`` seconds
+before and after the clicks: a job's gap above it is the job's doing, the rest is the
+machine's.
 Runs under the current X display, else re-runs itself under ``xvfb-run``.
 """
 
@@ -29,6 +32,7 @@ from _harness import load_test_module, peak_rss_mb, record  # noqa: E402
 
 TARGET_JOB_BLOCK_S = 0.100
 REPEATS = 2
+IDLE_S = 3.0
 
 
 class _Bot:
@@ -73,6 +77,13 @@ def measure() -> dict:
     jobs = [("Impulse removal", "Remove impulses"), ("Flat field", "Apply flat field"), ("PSF from edges", "Fit PSF"),
             ("Contrast", "Apply at full resolution"), ("Diagnosis", "Diagnose")]
     load_before = os.getloadavg()[0]
+
+    def idle_gap_ms() -> float:
+        monitor = click_suite.EventLoopMonitor().start()
+        plugin.qtbot.wait(int(IDLE_S * 1000))
+        return round(monitor.stop() * 1000, 1)
+
+    idle_ms = [idle_gap_ms()]
     for _ in range(REPEATS):
         for widget_name, text in jobs:
             plugin.click(widget_name, text, timeout_ms=120_000)
@@ -80,6 +91,7 @@ def measure() -> dict:
         deconvolution._image.value = layers["edge SOD 900 mm"]
         deconvolution._kernel_layer.value = layers["PSF kernel"]
         plugin.click("Deconvolution", "Apply to the whole image")
+    idle_ms.append(idle_gap_ms())
     gaps = {f"{widget}: {text}": {phase: round(value * 1000, 1) for phase, value in phases.items()}
             for (widget, text), phases in click_suite.GAPS.items()}
     worst_job_ms = max(phases["job"] for phases in gaps.values())
@@ -88,6 +100,7 @@ def measure() -> dict:
         "gaps_ms_click_job_result": gaps,
         "worst_job_block_ms": worst_job_ms,
         "target_job_block_ms": TARGET_JOB_BLOCK_S * 1000,
+        "idle_max_gap_ms_before_after": idle_ms,
         "load_average_per_core": round(max(load_before, os.getloadavg()[0]) / (os.cpu_count() or 1), 2),
         "repeats": REPEATS,
         "peak_rss_mb": round(peak_rss_mb(), 1),

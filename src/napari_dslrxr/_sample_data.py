@@ -37,23 +37,27 @@ def _frame_metadata(kind: str) -> dict:
             "white_level": frames.white_level, "linear": True}
 
 
+def _frame_layer(data: np.ndarray, name: str, kind: str) -> tuple:
+    """A frame as an RGB image layer shown from black to its brightest counts (napari's default
+    for uint16 is the whole 0-65535 range, which shows a 12-bit frame almost black)."""
+    top = float(np.percentile(data[::4, ::4], 99.9))
+    return (data, {"name": name, "rgb": True, "contrast_limits": (0.0, max(top, 1.0)),
+                   "metadata": _frame_metadata(kind)}, "image")
+
+
 def make_sample_radiograph() -> list[tuple]:
     """A DSLR photograph of a scintillator (linear RGB counts, uint16) with pulses."""
-    frames = _phantom()
-    return [(frames.raw_rgb, {"name": "DSLR radiograph", "rgb": True,
-                              "metadata": _frame_metadata("radiograph")}, "image")]
+    return [_frame_layer(_phantom().raw_rgb, "DSLR radiograph", "radiograph")]
 
 
 def make_sample_flat() -> list[tuple]:
     """The matching flat (open-beam) frame, same camera settings (uint16 RGB)."""
-    frames = _phantom()
-    return [(frames.flat, {"name": "flat", "rgb": True, "metadata": _frame_metadata("flat")}, "image")]
+    return [_frame_layer(_phantom().flat, "flat", "flat")]
 
 
 def make_sample_dark() -> list[tuple]:
     """The matching dark frame (X-rays off: black level and read noise, uint16 RGB)."""
-    frames = _phantom()
-    return [(frames.dark, {"name": "dark", "rgb": True, "metadata": _frame_metadata("dark")}, "image")]
+    return [_frame_layer(_phantom().dark, "dark", "dark")]
 
 
 def make_sample_dslr_set() -> list[tuple]:

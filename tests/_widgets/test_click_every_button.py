@@ -32,9 +32,9 @@ from napari_dslrxr import _sample_data as samples
 from napari_dslrxr._cli.view import plugin_widget_names, populate_viewer
 from napari_dslrxr._widgets import contrast as contrast_module
 from napari_dslrxr._widgets import deconvolution as deconvolution_module
-from napari_dslrxr._widgets import flatfield as flatfield_module
-from napari_dslrxr._widgets import impulse as impulse_module
-from napari_dslrxr._widgets._common import EventLoopMonitor
+from napari_dslrxr._widgets._common import EventLoopMonitor, viewer_camera
+from napari_dslrxr.core.psf.edge_images import MIN_ROI_PX
+from napari_dslrxr.core.errors import WorkCancelled
 from napari_dslrxr.core.io import write_tiff
 from napari_dslrxr.core.psf import PSFModel, load_psf, save_psf
 
@@ -134,8 +134,6 @@ class Plugin:
         saved at 1300x800; the canvas must show something (black = broken GL)."""
         from qtpy.QtWidgets import QApplication
 
-        from napari_dslrxr._widgets._common import viewer_camera
-
         viewer = self.viewer
         for layer in viewer.layers:
             layer.visible = layer.name in visible
@@ -215,6 +213,43 @@ def gate(module, name: str, monkeypatch) -> threading.Event:
     return release
 
 
+class _Hold(threading.Event):
+    """A gate that remembers when it was opened."""
+
+    released_at = float("nan")
+
+    def set(self) -> None:
+        self.released_at = time.perf_counter()
+        super().set()
+
+
+def hold_halfway(panel, monkeypatch) -> _Hold:
+    """Hold the core stage at its first progress report past half of its steps until the
+    returned event is set (just after Cancel was clicked), so Cancel is clicked while the real
+    stage certainly runs (nothing of the core is replaced); after the hold, the panel's own
+    callback stops it at its next report. The event's ``reports`` lists the progress the
+    stage reported and ``stop_s`` the seconds from the release to the core's stop."""
+    real = panel.callback
+    release = _Hold()
+    release.reached = threading.Event()  # the stage waits at its halfway report
+    release.reports = []
+    release.stop_s = float("inf")
+
+    def held(*args):
+        release.reports.append(args)
+        try:
+            real(*args)
+        except WorkCancelled:
+            release.stop_s = time.perf_counter() - release.released_at
+            raise
+        if len(args) == 2 and 2 * args[0] >= args[1] and not release.is_set():
+            release.reached.set()
+            release.wait(20)
+
+    monkeypatch.setattr(panel, "callback", held)
+    return release
+
+
 def cancel_running(plugin: Plugin, widget_name: str, start: str, cancel: str, release: threading.Event | None,
                    result_layer: str) -> float:
     """Start a job, click Cancel while it runs; the widget is usable at once, the job's thread
@@ -223,6 +258,8 @@ def cancel_running(plugin: Plugin, widget_name: str, start: str, cancel: str, re
     plugin.click(widget_name, start, wait=False)
     worker = widget._job.worker
     assert worker is not None and widget._job.running, f"{widget_name}: '{start}' started no job"
+    if hasattr(release, "reached"):  # held inside the core: Cancel when it got there
+        plugin.qtbot.waitUntil(release.reached.is_set, timeout=60_000)
     plugin.click(widget_name, cancel)
     clicked_at = time.perf_counter()
     assert not widget._job.running and "cancelled" in widget._job.status.value
@@ -232,6 +269,18 @@ def cancel_running(plugin: Plugin, widget_name: str, start: str, cancel: str, re
     stopped_s = time.perf_counter() - clicked_at
     assert result_layer not in plugin.viewer.layers, f"{widget_name}: cancelled job left '{result_layer}'"
     return stopped_s
+
+
+def cancel_inside_core(plugin: Plugin, widget_name: str, start: str, result_layer: str, monkeypatch) -> None:
+    """Cancel stops the core stage itself (its progress callback raises) within 1 s of the
+    click, before its last step, while it runs at its halfway report."""
+    release = hold_halfway(plugin.widgets[widget_name]._job, monkeypatch)
+    stopped_s = cancel_running(plugin, widget_name, start, "Cancel", release, result_layer)
+    assert release.stop_s < 1.0, f"{widget_name}: the core computed on {release.stop_s:.2f} s after Cancel"
+    assert stopped_s < 5.0, f"{widget_name}: the thread ended {stopped_s:.1f} s after Cancel"
+    done, total = release.reports[-1]
+    assert done < total, f"{widget_name}: the stage ran to its end"
+    monkeypatch.undo()
 
 
 def answer_file_dialog(file_edit, path) -> None:
@@ -249,15 +298,19 @@ def test_dslrxr_view_docks_every_widget_and_no_preview_appears(plugin, shots):
     manifest = PluginManager.instance().get_manifest("napari-dslrxr")
     keys = {sample.key for sample in manifest.contributions.sample_data}
     assert keys == set(SAMPLE_KEYS) | set(SINGLE_SAMPLE_KEYS)
-    for key in SINGLE_SAMPLE_KEYS:
-        plugin.viewer.open_sample("napari-dslrxr", key)
     assert set(plugin.widgets) == set(plugin_widget_names()) and len(plugin.widgets) == 7
     plugin.qtbot.wait(300)  # longer than any preview debounce
     names = [layer.name for layer in plugin.viewer.layers]
     assert not [n for n in names if "preview" in n or "contrast" in n], names
     assert "DSLR radiograph" in names and "edge SOD 500 mm" in names and "simulated recording" in names
     plugin.check_notifications("opening the samples")
+    plugin.widgets["Impulse removal"]._image.value = plugin.viewer.layers["DSLR radiograph"]  # the user picks it
     plugin.snap(shots, "all_widgets", "Impulse removal", ["DSLR radiograph"])
+    for key in SINGLE_SAMPLE_KEYS:  # the single-frame sample commands work too (after the picture: no "[1]")
+        plugin.viewer.open_sample("napari-dslrxr", key)
+    plugin.qtbot.wait(300)
+    assert not [n for n in (layer.name for layer in plugin.viewer.layers) if "preview" in n or "contrast" in n]
+    plugin.check_notifications("opening the single samples")
 
 
 def test_impulse_removal_buttons(plugin, monkeypatch, shots):
@@ -266,9 +319,7 @@ def test_impulse_removal_buttons(plugin, monkeypatch, shots):
     widget._passes["H"].value = 5
     plugin.click(name, "Restore defaults")
     assert widget.get_params().passes_h == 3
-    release = gate(impulse_module, "remove_impulses", monkeypatch)
-    cancel_running(plugin, name, "Remove impulses", "Cancel", release, "DSLR radiograph cleaned")
-    monkeypatch.undo()
+    cancel_inside_core(plugin, name, "Remove impulses", "DSLR radiograph cleaned", monkeypatch)
     plugin.click(name, "Remove impulses")
     assert "DSLR radiograph cleaned" in plugin.viewer.layers
     assert "px replaced" in widget._readout.value and "done in" in widget._job.status.value
@@ -296,9 +347,7 @@ def test_flat_field_buttons(plugin, monkeypatch, tmp_path):
     widget._smoothing.value = 9.0
     plugin.click(name, "Restore defaults")
     assert widget.get_params().flat_smoothing_px == 4.0
-    release = gate(flatfield_module, "correct_with_layers", monkeypatch)
-    cancel_running(plugin, name, "Apply flat field", "Cancel", release, "DSLR radiograph flat-fielded")
-    monkeypatch.undo()
+    cancel_inside_core(plugin, name, "Apply flat field", "DSLR radiograph flat-fielded", monkeypatch)
     plugin.click(name, "Apply flat field")
     assert "DSLR radiograph flat-fielded" in layers
     plugin.check_all_clicked(name)
@@ -306,6 +355,33 @@ def test_flat_field_buttons(plugin, monkeypatch, tmp_path):
 
 def rectangle(r0, c0, r1, c1):
     return np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float)
+
+
+def drag_rectangle(plugin: Plugin, shapes, r0: float, c0: float, r1: float, c1: float) -> None:
+    """Draw a rectangle with the mouse on the canvas (the Shapes layer in its rectangle mode):
+    press at data (r0, c0), move, release at (r1, c1); a new shape must result."""
+    from qtpy.QtCore import QPoint, Qt
+    from qtpy.QtTest import QTest
+
+    canvas = plugin.viewer.window._qt_viewer.canvas
+    transform = canvas.view.transform * canvas.view.scene.transform
+
+    def point(r, c) -> QPoint:
+        world = shapes.data_to_world((r, c))
+        x, y = transform.map([world[-1], world[-2]])[:2]
+        return QPoint(int(round(x)), int(round(y)))
+
+    assert shapes.mode == "add_rectangle"
+    before = len(shapes.data)
+    native = canvas.native
+    start, end = point(r0, c0), point(r1, c1)
+    QTest.mousePress(native, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, start)
+    for f in (0.25, 0.5, 0.75, 1.0):
+        QTest.mouseMove(native, start + (end - start) * f)
+        plugin.qtbot.wait(10)
+    QTest.mouseRelease(native, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, end)
+    plugin.qtbot.wait(20)
+    assert len(shapes.data) == before + 1, "the drag drew no rectangle"
 
 
 def test_psf_from_edges_buttons(plugin, tmp_path, shots):
@@ -321,13 +397,19 @@ def test_psf_from_edges_buttons(plugin, tmp_path, shots):
     plugin.click(name, "Draw ROIs on this image")
     shapes = viewer.layers["edge SOD 500 mm ROIs"]
     assert viewer.layers.selection.active is shapes and shapes.mode == "add_rectangle"
-    shapes.add_rectangles([rectangle(32, 32, 96, 96)])
-    # Too small an ROI is refused by name, not dropped.
-    shapes.add_rectangles([rectangle(40, 40, 45, 45)])
-    plugin.click(name, "Fit PSF", refused="ROI 2 on 'edge SOD 500 mm' is 5x5 px")
-    shapes.data = shapes.data[:1]
+    viewer.window.resize(1300, 800)
+    viewer_camera(viewer).center, viewer_camera(viewer).zoom = (0, 64, 64), 4.0  # the user zooms in
+    plugin.qtbot.wait(50)
+    drag_rectangle(plugin, shapes, 32, 32, 96, 96)
+    # Too small an ROI is refused by its number and the fit's minimum, not dropped: under 8 px
+    # and between 8 px and the minimum alike.
+    for side in (5, 12):
+        drag_rectangle(plugin, shapes, 40, 40, 40 + side, 40 + side)
+        texts = plugin.click(name, "Fit PSF", refused="ROI 2 on 'edge SOD 500 mm' is ")
+        assert f"draw it at least {MIN_ROI_PX}x{MIN_ROI_PX} px" in texts[-1] and f"{side}x{side} px" in texts[-1]
+        shapes.data = shapes.data[:1]
     # An ROI without an edge says so.
-    shapes.add_rectangles([rectangle(100, 0, 128, 40)])
+    drag_rectangle(plugin, shapes, 100, 0, 128, 40)
     plugin.click(name, "Fit PSF", refused="ROI 2 on 'edge SOD 500 mm': no edge found")
     assert "no edge found" in widget._readout.value  # the read-out does not stay at "fitting..."
     shapes.data = shapes.data[:1]

@@ -18,16 +18,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..core.errors import DslrxrError
+from ..core.errors import DslrxrError, WorkCancelled
 
 if TYPE_CHECKING:
     import napari
 
 _LOG = logging.getLogger(__name__)
-
-
-class WorkCancelled(DslrxrError):
-    """Raised inside a worker (e.g. from a core progress callback) when the user cancels."""
 
 
 # --------------------------------------------------------------------------- notifications
@@ -113,8 +109,11 @@ class JobPanel:
     reports that is still computing is left to finish in its thread, unseen.
     """
 
-    #: How often the bar follows the progress the worker thread reports.
-    POLL_MS = 100
+    #: How often the bar follows the progress the worker thread reports. Every change of the
+    #: bar or the status repaints the main window (with napari's GL canvas composed in), so
+    #: they change only when what they show changes: the bar by whole percents, the elapsed
+    #: time by whole seconds, and no busy animation (it repaints continuously).
+    POLL_MS = 250
 
     def __init__(self, cancel_text: str = "Cancel", tooltip: str = "stop the running operation; "
                  "nothing of it is shown"):
@@ -169,15 +168,15 @@ class JobPanel:
         self.worker, self.desc, self._on_detach = worker, desc, on_detach
         self._state = ()
         self._started = time.perf_counter()
-        self.bar.native.setRange(0, 0)  # busy until the first (done, total)
+        self.bar.value = 0
         self.cancel_button.enabled = True
         self.status.value = f"{desc}: running..."
         self._timer.start()
 
     def update(self, value: Any) -> None:
-        """Show ``(done, total)`` (from a generator's yield) or a message."""
+        """Take ``(done, total)`` (from a generator's yield) or a message; shown at the next
+        tick (a job yielding fast must not flood the GUI thread with repaints)."""
         self._state = tuple(value) if isinstance(value, (tuple, list)) else (value,)
-        self._tick()
 
     def _tick(self) -> None:
         if self.worker is None:
@@ -187,11 +186,14 @@ class JobPanel:
         if len(state) == 2 and all(isinstance(v, (int, float, np.integer, np.floating)) for v in state):
             done, total = (float(v) for v in state)
             if total > 0:
-                self.bar.native.setRange(0, 1000)
-                self.bar.value = int(round(1000 * min(max(done / total, 0.0), 1.0)))
+                permille = 10 * int(100 * min(max(done / total, 0.0), 1.0))
+                if self.bar.value != permille:
+                    self.bar.value = permille
         elif len(state) == 1 and isinstance(state[0], str):
             message = f" ({state[0]})"
-        self.status.value = f"{self.desc}: running {elapsed:.1f} s{message}"
+        text = f"{self.desc}: running {int(elapsed)} s{message}"
+        if self.status.value != text:
+            self.status.value = text
 
     def end(self, worker: Any, outcome: str) -> bool:
         """The job's thread ended; returns False when the job was detached already (cancelled)."""
@@ -203,7 +205,6 @@ class JobPanel:
     def _finish(self, outcome: str) -> None:
         self._timer.stop()
         self.worker = None
-        self.bar.native.setRange(0, 1000)
         self.bar.value = 0
         self.cancel_button.enabled = False
         self.status.value = outcome

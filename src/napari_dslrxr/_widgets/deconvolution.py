@@ -46,6 +46,15 @@ REG_START = 100.0
 _DEBOUNCE_MS = 60
 
 
+def deconvolve_for_display(image: np.ndarray, kernel: np.ndarray, *, method: str, reg: float):
+    """Worker job (generator): the core's steps, then what showing the result needs, computed
+    here rather than on the GUI thread: the result, its display range, and the value ranges
+    of input and result."""
+    out = yield from deconvolve_steps(image, kernel, method=method, reg=reg)
+    return (out, robust_limits(out), (float(np.min(image)), float(np.max(image))),
+            (float(np.min(out)), float(np.max(out))))
+
+
 def preview_region(image: np.ndarray, kernel: np.ndarray, rows: slice, cols: slice, *, method: str,
                    reg: float) -> np.ndarray:
     """Deconvolve the visible crop ``image[rows, cols]`` with the preview solver (core call)."""
@@ -218,9 +227,9 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         self._apply.enabled = False
         self._readout.value = f"deconvolving with {params.method}..."
         self._full_worker = run_in_worker(
-            deconvolve_steps, image, kernel, method=params.method, reg=params.reg,
+            deconvolve_for_display, image, kernel, method=params.method, reg=params.reg,
             desc=f"deconvolution ({params.method})", panel=self._job, readout=self._readout,
-            on_returned=lambda out: self._show_full(layer, image, out, params), on_finished=self._full_done)
+            on_returned=lambda out: self._show_full(layer, *out, params), on_finished=self._full_done)
         return self._full_worker
 
     def cancel(self) -> None:
@@ -232,16 +241,15 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         if self._readout.value.endswith("..."):
             self._readout.value = self._job.status.value
 
-    def _show_full(self, layer, image: np.ndarray, out: np.ndarray, params: DeconvolutionParams) -> None:
+    def _show_full(self, layer, out: np.ndarray, limits: tuple[float, float], input_range: tuple[float, float],
+                   out_range: tuple[float, float], params: DeconvolutionParams) -> None:
         """The result with display limits from its own values, and a warning when they leave
         the input's range (ringing or over-sharpening: try a larger regularisation)."""
         self.result = out
-        limits = robust_limits(out)
         show_layer(self._viewer, out, f"{layer.name} deconvolved", "image", rgb=out.ndim == 3,
                    scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]),
                    **({} if out.ndim == 3 else {"contrast_limits": limits}))
-        in_lo, in_hi = float(np.min(image)), float(np.max(image))
-        out_lo, out_hi = float(np.min(out)), float(np.max(out))
+        (in_lo, in_hi), (out_lo, out_hi) = input_range, out_range
         span = max(in_hi - in_lo, 1e-12)
         text = (f"deconvolved with {params.method}, reg {float(params.reg):.3g}; values {out_lo:.4g} to "
                 f"{out_hi:.4g} (input {in_lo:.4g} to {in_hi:.4g})")

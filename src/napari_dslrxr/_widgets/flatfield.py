@@ -20,7 +20,7 @@ from ..core.errors import ParameterError
 from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
 from ..core.io import read_image
 from ._common import (JobPanel, debounced, guarded, notify_error, param_widget, readout_label, remove_layer,
-                      restore_defaults_button, run_in_worker, same_geometry, show_layer)
+                      restore_defaults_button, robust_limits, run_in_worker, same_geometry, show_layer)
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -30,15 +30,18 @@ _DEBOUNCE_MS = 150
 
 
 def correct_with_layers(image: np.ndarray, flat: np.ndarray | None, dark: np.ndarray | None,
-                        params: FlatFieldParams) -> tuple[np.ndarray, int]:
+                        params: FlatFieldParams, progress=None) -> tuple[np.ndarray, int, tuple[float, float]]:
     """Core call of the widget: prepare the reference and apply it (runs in the worker).
 
-    Returns the corrected float32 counts and the number of pulse pixels cleaned from the
-    reference frames.
+    ``progress``: the core's progress callback (the job panel's stops the preparation at
+    its next step when Cancel is pressed). Returns the corrected float32 counts, the
+    number of pulse pixels cleaned from the reference frames and the result's display range
+    (computed here, not on the GUI thread).
     """
     reference = prepare_flat_reference(image.shape, flats=[] if flat is None else [flat],
-                                       darks=[] if dark is None else [dark], params=params)
-    return apply_flat_field(image, reference), reference.cleaned_pulses
+                                       darks=[] if dark is None else [dark], params=params, progress=progress)
+    corrected = apply_flat_field(image, reference)
+    return corrected, reference.cleaned_pulses, robust_limits(corrected)
 
 
 class FlatFieldWidget(Container):
@@ -168,7 +171,8 @@ class FlatFieldWidget(Container):
         self._apply.enabled = False
         self._readout.value = "running..."
         return run_in_worker(correct_with_layers, image, flat, dark, params, desc="flat field",
-                             on_returned=lambda out: self._show(layer, out, False), on_finished=self._done,
+                             progress=self._job.callback, on_returned=lambda out: self._show(layer, out, False),
+                             on_finished=self._done,
                              panel=self._job, readout=self._readout)
 
     def _done(self) -> None:
@@ -176,13 +180,15 @@ class FlatFieldWidget(Container):
         if self._readout.value == "running...":
             self._readout.value = self._job.status.value
 
-    def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int], preview: bool) -> None:
-        corrected, cleaned = out
+    def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int, tuple[float, float]],
+              preview: bool) -> None:
+        corrected, cleaned, limits = out
         if preview and not self._preview.value:
             return  # turned off while it computed
         name = f"{layer.name} flat-fielded" + (" (preview)" if preview else "")
         show_layer(self._viewer, corrected, name, "image",
-                   rgb=bool(getattr(layer, "rgb", False)) and corrected.ndim == 3, **same_geometry(layer))
+                   rgb=bool(getattr(layer, "rgb", False)) and corrected.ndim == 3, contrast_limits=limits,
+                   **same_geometry(layer))
         if preview:
             self._preview_layer = name
         else:

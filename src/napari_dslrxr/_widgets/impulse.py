@@ -17,8 +17,8 @@ from magicgui.widgets import ComboBox, Container, PushButton, create_widget
 
 from ..core.errors import ParameterError
 from ..core.stages.impulse import ImpulseParams, ImpulseResult, remove_impulses
-from ._common import (JobPanel, guarded, param_widget, readout_label, restore_defaults_button, run_in_worker,
-                      same_geometry, show_layer)
+from ._common import (JobPanel, guarded, param_widget, readout_label, restore_defaults_button, robust_limits,
+                      run_in_worker, same_geometry, show_layer)
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -40,6 +40,14 @@ def pulse_summary(result: ImpulseResult) -> str:
                      f"gain {gain_text}")
     lines.append(f"any channel: {int(np.count_nonzero(result.any_mask()))} px")
     return "\n".join(lines)
+
+
+def clean_for_display(image: np.ndarray, params: ImpulseParams, space: str,
+                      progress=None) -> tuple[ImpulseResult, tuple[float, float]]:
+    """Worker job: the core stage, then the cleaned image's display range (computed here, not
+    on the GUI thread)."""
+    result = remove_impulses(image, params, space=space, progress=progress)
+    return result, robust_limits(result.image)
 
 
 class ImpulseWidget(Container):
@@ -110,8 +118,9 @@ class ImpulseWidget(Container):
         space = self._space.value
         self._run_button.enabled = False
         self._readout.value = "running..."
-        return run_in_worker(remove_impulses, image, params, space=space, desc="impulse removal",
-                             on_returned=lambda r: self._show(layer, r), on_finished=self._done,
+        return run_in_worker(clean_for_display, image, params, space, progress=self._job.callback,
+                             desc="impulse removal",
+                             on_returned=lambda out: self._show(layer, *out), on_finished=self._done,
                              panel=self._job, readout=self._readout)
 
     def _done(self) -> None:
@@ -119,11 +128,11 @@ class ImpulseWidget(Container):
         if self._readout.value == "running...":
             self._readout.value = self._job.status.value
 
-    def _show(self, layer: napari.layers.Image, result: ImpulseResult) -> None:
+    def _show(self, layer: napari.layers.Image, result: ImpulseResult, limits: tuple[float, float]) -> None:
         self.result = result
         geometry = same_geometry(layer)
         show_layer(self._viewer, result.image, f"{layer.name} cleaned", "image",
-                   rgb=bool(getattr(layer, "rgb", False)), **geometry)
+                   rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, **geometry)
         for name, mask in result.masks.items():
             labels = mask.astype(np.uint8) * np.uint8(CHANNEL_LABEL.get(name, 1))
             show_layer(self._viewer, labels, f"{layer.name} pulses {name}", "labels",

@@ -20,6 +20,7 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, FileEdit, PushButton, create_widget
 
 from ..core.psf.edge_fit import EdgeImage, fit_edges
+from ..core.psf.edge_images import MIN_ROI_PX
 from ..core.psf.fit_params import EdgeFitSettings
 from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
@@ -31,8 +32,6 @@ if TYPE_CHECKING:
 
 SOD_KEY, SDD_KEY = "source_to_object_mm", "source_to_detector_mm"
 SHAPES = {"exponential (p = 1, SABER)": 1.0, "Gaussian (p = 2)": 2.0}
-#: Smallest ROI side the fit takes (the core's minimum).
-MIN_ROI_PX = 16
 
 
 def roi_layer_name(image_name: str) -> str:

@@ -47,3 +47,13 @@ class ParameterError(DslrxrError):
 
 class OutputError(DslrxrError):
     """An output that cannot or must not be written (for example, it would overwrite an input)."""
+
+
+class WorkCancelled(DslrxrError):
+    """The user cancelled a long stage.
+
+    Long core stages take a ``progress`` callable and call it between their steps (chunks,
+    passes, channels); a caller that wants them to stop raises this from that callable, and
+    the stage lets it propagate: nothing half-made is returned. The core itself never raises
+    it.
+    """

@@ -149,3 +149,25 @@ def test_flat_pulse_detection_precision_and_recall_against_phantom_truth():
     # the reference builder passes the dark offset: same count on the flat (the dark adds a few)
     reference = prepare_flat_reference(frames.flat.shape, flats=[frames.flat], darks=[frames.dark])
     assert reference.cleaned_pulses < 1.3 * np.count_nonzero(truth)
+
+
+def test_prepare_progress_steps_and_a_raising_callback_stops_it():
+    """prepare_flat_reference reports its steps up to the total and stops when the callback
+    raises (from the first pulse clean-up on)."""
+    from napari_dslrxr.core.errors import WorkCancelled
+    from napari_dslrxr.core.stages.flatfield import prepare_flat_reference
+
+    frames = make_dslr_radiograph((120, 160), seed=5)
+    reports: list[tuple[int, int]] = []
+    ref = prepare_flat_reference(frames.raw_rgb.shape, flats=[frames.flat], darks=[frames.dark],
+                                 progress=lambda done, total: reports.append((done, total)))
+    plain = prepare_flat_reference(frames.raw_rgb.shape, flats=[frames.flat], darks=[frames.dark])
+    np.testing.assert_array_equal(ref.denominator, plain.denominator)
+    assert [d for d, _ in reports] == sorted(d for d, _ in reports) and reports[-1] == (4, 4)
+    assert len(reports) >= 4 + 2 * 3  # each step, and each channel of both pulse clean-ups
+
+    def cancel(done, total):
+        raise WorkCancelled("flat field: cancelled")
+
+    with pytest.raises(WorkCancelled):
+        prepare_flat_reference(frames.raw_rgb.shape, flats=[frames.flat], darks=[frames.dark], progress=cancel)

@@ -385,3 +385,32 @@ def test_cfa_zingers_in_a_dng_found_before_demosaicing(tmp_path, rng):
     # Demosaicing (LibRaw AHD) reaches about 5 px: beyond 8 px of a replaced site nothing changes.
     far = ndi.distance_transform_edt(~found) > 8
     assert np.array_equal(cleaned_rgb[far], loaded.data[far])
+
+
+@pytest.mark.parametrize("space", ["hsv", "grey"])
+def test_progress_reaches_the_end_and_a_raising_callback_stops_the_stage(space):
+    """The progress callback sees steps that only grow up to their total, the result is the
+    same as without it, and raising from it stops the stage at that step (nothing returned)."""
+    from napari_dslrxr.core.errors import WorkCancelled
+    from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
+
+    rgb = make_dslr_radiograph((160, 200), seed=4).raw_rgb
+    params = ImpulseParams(passes_h=2)
+    reports: list[tuple[int, int]] = []
+    result = remove_impulses(rgb, params, space=space, progress=lambda done, total: reports.append((done, total)))
+    plain = remove_impulses(rgb, params, space=space)
+    np.testing.assert_array_equal(result.image, plain.image)
+    done = [d for d, _ in reports]
+    assert len({t for _, t in reports}) == 1 and done == sorted(done) and done[-1] == reports[0][1]
+    assert len(set(done)) >= (10 if space == "hsv" else 4)  # per pass of each channel, not only at the end
+    stop_at = done[len(done) // 2]
+    calls_after = []
+
+    def cancel(step, total):
+        if calls_after or step >= stop_at:
+            calls_after.append(step)
+            raise WorkCancelled("impulse removal: cancelled")
+
+    with pytest.raises(WorkCancelled):
+        remove_impulses(rgb, params, space=space, progress=cancel)
+    assert calls_after == [stop_at]  # no step ran after the raise

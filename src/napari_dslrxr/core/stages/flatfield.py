@@ -14,7 +14,7 @@ rely on.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import InputError, ParameterError
 from ..param_fields import validate_fields
+from ..progress import ProgressCallback, Steps
 from ..robust import robust_sigma
 
 
@@ -95,7 +96,7 @@ class FlatReference:
 
 
 def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0,
-                         offset_counts=0.0) -> tuple[np.ndarray, int]:
+                         offset_counts=0.0, *, check: Callable[[], object] | None = None) -> tuple[np.ndarray, int]:
     """Replace bright impulsive pixels of a reference frame by their 5x5 median.
 
     A switching median for flat and dark frames. With ``m`` the 5x5 median and ``r = x - m``
@@ -119,6 +120,8 @@ def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0,
     offset_counts : float or sequence of float
         Dark offset (counts, per channel or one for all) under the signal: the photon noise
         grows with ``m - offset``, not with ``m``.
+    check : callable, optional
+        Called between channels (a progress report that may stop the stage by raising).
 
     Returns
     -------
@@ -143,6 +146,8 @@ def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0,
     high = np.empty(arr3.shape, bool)
     low = np.empty(arr3.shape, bool)
     for c in range(n_channels):
+        if check is not None:
+            check()
         a, b = _pulse_noise_model(arr3[::step, ::step, c], med[::step, ::step, c], offsets[c])
         if arr.dtype == np.uint16:
             # thresholds tabulated over all 65536 median levels: the full-size work stays uint16
@@ -220,10 +225,11 @@ def _check_finite(arr: np.ndarray, what: str) -> None:
 
 
 def _clean_single_frame(frame: np.ndarray, what: str, offset_levels: np.ndarray,
-                        params: FlatFieldParams) -> tuple[np.ndarray, int]:
+                        params: FlatFieldParams, check: Callable[[], object] | None = None) -> tuple[np.ndarray, int]:
     """Pulse clean-up of a lone reference frame (no median to reject them); checks dtype and NaN."""
     _as_float_frames([frame[:1]], what)  # dtype check only (no full-size copy)
-    cleaned, n = remove_bright_pulses(frame, params.pulse_threshold_sigma, offset_counts=offset_levels)
+    cleaned, n = remove_bright_pulses(frame, params.pulse_threshold_sigma, offset_counts=offset_levels,
+                                      check=check)
     _check_finite(cleaned, what)
     return cleaned, n
 
@@ -238,7 +244,8 @@ def combine_frames(frames: Sequence[np.ndarray]) -> np.ndarray:
 
 def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray] = (),
                            darks: Sequence[np.ndarray] = (), black_level=None,
-                           params: FlatFieldParams | None = None) -> FlatReference:
+                           params: FlatFieldParams | None = None,
+                           progress: ProgressCallback | None = None) -> FlatReference:
     """Build the dark offset and the smoothed flat denominator for radiographs of ``shape``.
 
     Parameters
@@ -252,6 +259,10 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
     black_level : float or sequence of float, optional
         Raw black level per channel (counts); 0 when neither darks nor a black level is given.
     params : FlatFieldParams, optional
+    progress : callable, optional
+        Called as ``progress(done, total)`` between the steps (dark frame, flat frame,
+        smoothing, statistics) and between the channels of a pulse clean-up. To stop, raise
+        from it (e.g. :class:`~napari_dslrxr.core.errors.WorkCancelled`): it propagates.
 
     Returns
     -------
@@ -265,11 +276,13 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
     params = params or FlatFieldParams()
     n_channels = shape[2] if len(shape) == 3 else 1
     cleaned = 0
+    steps = Steps(progress, 4)
     if darks:
         if np.asarray(darks[0]).shape != tuple(shape):
             raise InputError("dark frame", f"shape {np.asarray(darks[0]).shape} differs from the radiograph's {tuple(shape)}")
         if len(darks) == 1 and params.clean_flat_pulses:
-            offset, n = _clean_single_frame(darks[0], "dark frame", _channel_levels(darks[0]), params)
+            offset, n = _clean_single_frame(darks[0], "dark frame", _channel_levels(darks[0]), params,
+                                            check=steps.check)
             cleaned += n
         else:
             offset = combine_frames(_as_float_frames(darks, "dark frame"))
@@ -280,6 +293,7 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
         offset = offset if n_channels > 1 else offset[:1]
     else:
         offset = np.zeros(n_channels if n_channels > 1 else 1, np.float32)
+    steps.advance()
     if not flats or not params.enabled:
         return FlatReference(offset=offset, denominator=None, scale=np.ones(n_channels, np.float32),
                              n_flats=0, cleaned_pulses=cleaned)
@@ -290,19 +304,21 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
         raise InputError("flat frame", f"shape {np.asarray(flats[0]).shape} differs from the radiograph's {tuple(shape)}")
     n_flats = len(flats)
     if n_flats == 1 and params.clean_flat_pulses:
-        flat, n = _clean_single_frame(flats[0], "flat frame", _channel_levels(offset), params)
+        flat, n = _clean_single_frame(flats[0], "flat frame", _channel_levels(offset), params, check=steps.check)
         cleaned += n
     else:
         flat = combine_frames(_as_float_frames(flats, "flat frame"))
         if n_flats == 2 and params.clean_flat_pulses:
             flat, n = remove_bright_pulses(flat, params.pulse_threshold_sigma,
-                                           offset_counts=_channel_levels(offset))
+                                           offset_counts=_channel_levels(offset), check=steps.check)
             cleaned += n
+    steps.advance()
     denominator = flat - offset
     del flat
     if params.flat_smoothing_px > 0:
         denominator = cv2.GaussianBlur(denominator, (0, 0), float(params.flat_smoothing_px),
                                        borderType=cv2.BORDER_REFLECT)
+    steps.advance()
     chans = denominator.reshape(denominator.shape[0], denominator.shape[1], -1)
     step = max(1, int(np.sqrt(chans.shape[0] * chans.shape[1] / 1_000_000)))
     sub = chans[::step, ::step]  # statistics from a regular subsample
@@ -316,6 +332,7 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
         floors[c] = max(params.min_flat_fraction * top, 1e-6)
         scale[c] = float(plane[plane > 0.5 * top].mean())  # the exposed screen area
     np.maximum(chans, floors, out=chans)
+    steps.advance()
     return FlatReference(offset=offset, denominator=denominator, scale=scale,
                          n_flats=n_flats, cleaned_pulses=cleaned)
 

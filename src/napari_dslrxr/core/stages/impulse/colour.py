@@ -7,7 +7,8 @@ import math
 
 import numpy as np
 
-from .detection import _clean_channel
+from ...progress import Steps
+from .detection import _clean_channel, channel_steps
 from .noise_model import _count_variance, _gain, _NoiseModel
 from .params import _FLOAT, _POLARITY_SIGN, ImpulseParams, ImpulseResult, _to_dtype
 
@@ -114,10 +115,17 @@ def dominant_hue(h: np.ndarray, valid: np.ndarray, bins: int = 360) -> float:
     return (int(np.argmax(counts)) + 0.5) / bins
 
 
-def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
+def hsv_steps(params: ImpulseParams) -> int:
+    """Progress steps of :func:`_remove_hsv`: the HSV conversion, V's, S's and H's passes, and
+    the RGB rebuild."""
+    return 2 + sum(channel_steps(p) for p in (params.passes_v, params.passes_s, params.passes_h))
+
+
+def _remove_hsv(image: np.ndarray, params: ImpulseParams, steps: Steps) -> ImpulseResult:
     # Channels are cleaned in place: the cleaned H, S, V are the input's wherever their
     # mask is False, so they rebuild the RGB of every changed pixel.
     h, s, v = rgb_to_hsv_counts(image)
+    steps.advance()
     v_top = float(np.percentile(v[:: max(1, v.shape[0] // 512), :: max(1, v.shape[1] // 512)], 99))
     masks: dict[str, np.ndarray] = {}
     gain: dict[str, float] = {}
@@ -133,7 +141,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     # V first: bright zingers are clearest there, and a cleaner V defines the hue mask better.
     v_new, mask_v, model_v = _clean_channel(v, passes=params.passes_v, params=params,
                                             photon_counting=True, polarity=_POLARITY_SIGN[params.spots],
-                                            in_place=True)
+                                            in_place=True, steps=steps)
     _store("V", mask_v, model_v, True)
     # S and H are ratios of photon counts. Their noise follows from that of the counts,
     # Var[c] = G (c - o) + sigma_e^2 (V's fitted model, read-noise floor included; see
@@ -155,7 +163,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     s_new, mask_s, model_s = _clean_channel(s, passes=params.passes_s, params=params,
                                             photon_counting=False, polarity=0, value_range=1.0,
                                             residual_weight=weight_s, in_place=True,
-                                            fit_region=s_defined)
+                                            fit_region=s_defined, steps=steps)
     del s_defined
     _store("S", mask_s, model_s, False)
     del weight_s
@@ -181,7 +189,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
     h_new, mask_h, model_h = _clean_channel(h_rot, passes=params.passes_h, params=params,
                                             photon_counting=False, polarity=0,
                                             valid=hue_valid, circular=True, value_range=1.0,
-                                            residual_weight=weight_h, in_place=True)
+                                            residual_weight=weight_h, in_place=True, steps=steps)
     del weight_h
     _store("H", mask_h, model_h, False)
     out = image.copy()
@@ -191,4 +199,5 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
         hh = (h_new[rows, cols] + (hue_mode - 0.5)) % 1.0
         rgb = hsv_counts_to_rgb(hh, s_new[rows, cols], v_new[rows, cols])
         out[rows, cols] = _to_dtype(rgb, image.dtype)
+    steps.advance()
     return ImpulseResult(out, {"H": mask_h, "S": mask_s, "V": mask_v}, gain, rate, noise)

@@ -20,6 +20,7 @@ from .neighbourhoods import (
     _subsample_indices,
     _window_offsets,
 )
+from ...progress import Steps
 from .noise_model import _fit_mixture, _NoiseModel
 from .params import _FLOAT, ImpulseParams
 
@@ -57,6 +58,17 @@ _TEXTURE_BUSY_FRACTION = 0.2
 _BUSY_SIGMAS = 3.0
 _TEXTURE_NOISY_FRACTION = 0.35
 
+#: Progress steps of one pass of :func:`_clean_channel`: candidates and exact test, texture
+#: guard, patch growth and replacement.
+_STEPS_PER_PASS = 3
+
+
+def channel_steps(passes: int) -> int:
+    """Progress steps :func:`_clean_channel` reports for ``passes`` passes (the noise-model fit
+    first, then :data:`_STEPS_PER_PASS` per pass)."""
+    return 0 if passes <= 0 else 1 + _STEPS_PER_PASS * passes
+
+
 #: EM samples are left out where the image is this many times busier than usual (texture).
 #: A tighter cut (at the median) also removed noise-only samples selectively and biased
 #: the fitted gain by up to 20 %.
@@ -71,7 +83,8 @@ _CHUNK_PX = 8192
 def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_counting: bool,
                    polarity: int, valid: np.ndarray | None = None, circular: bool = False,
                    value_range: float | None = None, residual_weight: np.ndarray | None = None,
-                   in_place: bool = False, fit_region: np.ndarray | None = None):
+                   in_place: bool = False, fit_region: np.ndarray | None = None,
+                   steps: Steps | None = None):
     """Detect and replace pulses in one float32 channel (``in_place``: in ``x`` itself).
 
     ``fit_region`` (bool, optional): the noise model is fitted on these pixels only (and
@@ -85,9 +98,15 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     the previous one changed a detection median, so it re-tests just the pixels within the
     detection window of the pixels replaced before (the same result as a full pass).
 
+    ``steps``: advanced by :func:`channel_steps` ``(passes)`` in all (the fit, then each
+    pass's steps; passes not needed are skipped at once), so a caller's progress callback
+    runs between them and can stop the channel by raising.
+
     Returns (cleaned float32 channel, mask, model of the first pass or None). Pulse pixels
     get the median of their non-pulse neighbours; others are untouched.
     """
+    steps = Steps(None, 0) if steps is None else steps
+    channel_end = steps.done + channel_steps(passes)
     if not (in_place and x.dtype == _FLOAT and x.flags.c_contiguous):
         x = np.array(x, dtype=_FLOAT, copy=True)
     h, w = x.shape
@@ -98,6 +117,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         value_range = float(x.max() - x.min())
     value_range = max(value_range, 1e-12)
     components, fast_residual = _fast_residual(x, params.window_px, circular, residual_weight)
+    steps.check()
     fit_valid = valid if fit_region is None else (fit_region if valid is None else valid & fit_region)
     pick = _flat_area_sample(components, fit_valid, params.em_samples, photon_counting, x, fast_residual)
     if pick.size < 16 and fit_region is not None:  # too few: fit on every valid pixel
@@ -105,8 +125,10 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     median_max = max(float(comp.median.max()) for comp in components)
     del components  # the prefilter reads the median as x - residual (memory: 24 Mpx frames)
     if pick.size < 16:
+        steps.to(channel_end)
         return x, mask_total, None
     d_fit, m_fit = _exact_residual(x, *np.divmod(pick, w), params.window_px, circular, residual_weight)
+    steps.check()
     # Dark spots are sought in frames that still hold bright ones (direct hits): a dark-only
     # mixture would take those for noise and inflate its variance, so the fit is two-sided.
     model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, polarity=max(polarity, 0),
@@ -116,6 +138,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     del d_fit, m_fit, pick
     if photon_counting:
         model.min_contrast = float(params.min_contrast)
+    steps.advance()
     valid_flat = None if valid is None else valid.ravel()
     scratch = np.zeros((h, w), np.uint8)  # 1: pulse of this pass, 2: ring under test
     near_scratch = np.zeros((h, w), np.uint8)  # within 2 px of a pulse (growth's texture guard)
@@ -129,9 +152,11 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         if valid_flat is not None:
             candidates = candidates[valid_flat[candidates]]
         seeds = _exact_test(x, candidates, model, params, circular, residual_weight)
-        seeds = seeds[~_in_texture(fast_residual, seeds, x, model)]
+        steps.advance()
+        seeds = seeds[~_in_texture(fast_residual, seeds, x, model, check=steps.check)]
+        steps.advance()
         pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch,
-                               fast_residual, near_scratch)
+                               fast_residual, near_scratch, check=steps.check)
         if pulses.size == 0:
             break
         rows, cols = np.divmod(pulses, w)
@@ -147,6 +172,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         mask_total.ravel()[pulses] = True
         dr, dc = _window_offsets(2 * reach + 1)
         to_check = _sorted_unique(_flat_indices(rows, cols, dr, dc, (h, w)), h * w)
+        steps.advance()
+    steps.to(channel_end)
     return x, mask_total, model
 
 
@@ -269,7 +296,7 @@ def _prefilter(x: np.ndarray, median_max: float, model: _NoiseModel, params: Imp
 
 def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_NoiseModel",
                 reference: np.ndarray | None = None, ignore: np.ndarray | None = None,
-                chunk: int = _CHUNK_PX) -> np.ndarray:
+                chunk: int = _CHUNK_PX, check=None) -> np.ndarray:
     """True where the annulus around a pixel is busier than a pulse's can be (texture guard).
 
     ``residual``: the fast-median residual map of :func:`_prefilter`; ``pixels``: flat
@@ -278,7 +305,8 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
     never less than ``_BUSY_SIGMAS`` noise sigmas; ``x`` and ``model``: the
     channel and its noise model (for the noise-relative count); ``ignore`` (flat uint8,
     optional): pixels left out of the annulus (next to detected pulses, whose fast median
-    the pulse pulls up). Fewer than a third of the annulus left: not texture.
+    the pulse pulls up). Fewer than a third of the annulus left: not texture. ``check``
+    (optional) is called between chunks (a progress report that may stop the stage).
     """
     out = np.zeros(pixels.size, bool)
     if pixels.size == 0:
@@ -289,6 +317,8 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
     flat_x = x.ravel()
 
     for start in range(0, pixels.size, chunk):
+        if check is not None and start:
+            check()
         part = pixels[start:start + chunk]
         rows, cols = np.divmod(part, x.shape[1])
         own_residual = residual.at(part)
@@ -343,7 +373,7 @@ def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, param
 def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: ImpulseParams,
                   valid_flat: np.ndarray | None, circular: bool,
                   residual_weight: np.ndarray | None, scratch: np.ndarray,
-                  fast_residual: _FullMap, near_scratch: np.ndarray) -> np.ndarray:
+                  fast_residual: _FullMap, near_scratch: np.ndarray, check=None) -> np.ndarray:
     """Add neighbours of detected pulses that are pulses against their background.
 
     Each round tests the ring of pixels next to the pulses against the median of the
@@ -359,6 +389,8 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
 
     ``seeds`` and the result are flat indices; ``scratch`` and ``near_scratch`` (uint8,
     zero) mark pulses and ring, and the neighbourhood of pulses; both are zero on return.
+    ``check`` (optional) is called between growth rounds (a progress report that may stop
+    the stage; the scratch arrays are then left marked, so the stage must not go on).
     """
     if seeds.size == 0:
         return seeds
@@ -373,7 +405,9 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
     dr5, dc5 = _window_offsets(5)
     near_marked = [_flat_indices(*np.divmod(seeds, w), dr5, dc5, (h, w))]
     near_flat[near_marked[0]] = 1
-    for _ in range(params.max_patch_px):
+    for round_ in range(params.max_patch_px):
+        if check is not None and round_:
+            check()
         rows, cols = np.divmod(pulses, w)
         ring = _sorted_unique(_flat_indices(rows, cols, dr8, dc8, (h, w)), h * w)
         ring = ring[marks[ring] == 0]

@@ -5,15 +5,16 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import InputError, ParameterError
-from .colour import _remove_hsv
-from .detection import _clean_channel
+from ...progress import ProgressCallback, Steps
+from .colour import _remove_hsv, hsv_steps
+from .detection import _clean_channel, channel_steps
 from .neighbourhoods import _masked_median_at
 from .noise_model import _gain
 from .params import _FLOAT, _POLARITY_SIGN, ImpulseParams, ImpulseResult, _to_dtype
 
 
 def remove_impulses(image: np.ndarray, params: ImpulseParams | None = None, *,
-                    space: str | None = None) -> ImpulseResult:
+                    space: str | None = None, progress: ProgressCallback | None = None) -> ImpulseResult:
     """Detect and replace impulse noise (zingers) in a grey or RGB image.
 
     Parameters
@@ -28,6 +29,11 @@ def remove_impulses(image: np.ndarray, params: ImpulseParams | None = None, *,
         and replaces all three channels at the detected pixels. ``"hsv"``: H, S and V
         separately (H circular, rotated so the dominant hue sits at 0.5; pixels with small S
         or V are left out of hue filtering).
+    progress : callable, optional
+        Called as ``progress(done, total)`` between the steps of each channel's passes (and
+        between chunks of the longer steps). To stop the stage, raise from it (e.g.
+        :class:`~napari_dslrxr.core.errors.WorkCancelled`): the exception propagates and
+        nothing is returned.
 
     Returns
     -------
@@ -60,16 +66,17 @@ def remove_impulses(image: np.ndarray, params: ImpulseParams | None = None, *,
     if arr.ndim == 2:
         if space == "hsv":
             raise ParameterError("impulse: space 'hsv' needs an RGB image, got a grey one")
-        return _remove_grey(arr, params)
+        return _remove_grey(arr, params, Steps(progress, channel_steps(params.passes_grey)))
     if space == "grey":
-        return _remove_grey_of_rgb(arr, params)
-    return _remove_hsv(arr, params)
+        return _remove_grey_of_rgb(arr, params, Steps(progress, channel_steps(params.passes_grey) + 1))
+    return _remove_hsv(arr, params, Steps(progress, hsv_steps(params)))
 
 
-def _remove_grey(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
+def _remove_grey(image: np.ndarray, params: ImpulseParams, steps: Steps) -> ImpulseResult:
     x = image.astype(_FLOAT)
     cleaned, mask, model = _clean_channel(x, passes=params.passes_grey, params=params,
-                                          photon_counting=True, polarity=_POLARITY_SIGN[params.spots])
+                                          photon_counting=True, polarity=_POLARITY_SIGN[params.spots],
+                                          steps=steps)
     out = image.copy()
     if mask.any():
         # Only pulse pixels are written: medians computed in float32 (exact for integer
@@ -80,11 +87,11 @@ def _remove_grey(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
                          {"grey": (model.a, model.b) if model else (float("nan"), float("nan"))})
 
 
-def _remove_grey_of_rgb(image: np.ndarray, params: ImpulseParams) -> ImpulseResult:
+def _remove_grey_of_rgb(image: np.ndarray, params: ImpulseParams, steps: Steps) -> ImpulseResult:
     """Detect on the channel sum (still photon counting) and replace R, G, B at the pulses."""
     grey = image.astype(_FLOAT).sum(axis=2)
     _, mask, model = _clean_channel(grey, passes=params.passes_grey, params=params,
-                                    photon_counting=True, polarity=_POLARITY_SIGN[params.spots])
+                                    photon_counting=True, polarity=_POLARITY_SIGN[params.spots], steps=steps)
     out = image.copy()
     if mask.any():
         rows, cols = np.nonzero(mask)
@@ -92,6 +99,7 @@ def _remove_grey_of_rgb(image: np.ndarray, params: ImpulseParams) -> ImpulseResu
             chan = image[..., c].astype(_FLOAT)
             repl = _masked_median_at(chan, mask, rows, cols)
             out[rows, cols, c] = _to_dtype(repl, image.dtype)
+    steps.advance()
     return ImpulseResult(out, {"grey": mask}, {"grey": _gain(model, params)},
                          {"grey": model.pulse_rate if model else float("nan")},
                          {"grey": (model.a, model.b) if model else (float("nan"), float("nan"))})
