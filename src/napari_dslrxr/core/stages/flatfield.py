@@ -4,9 +4,10 @@
 and ``D`` the dark offset: a dark frame (X-rays off) or, without one, the raw black level.
 Several flats are combined by a pixel-wise median (which also removes pulses that hit only
 one of them); a single flat is pulse-cleaned with a switching median. The flat is then
-smoothed with a small Gaussian so that its own photon noise is not stamped onto every
-corrected radiograph (set ``flat_smoothing_px = 0`` when the flat carries fine fixed-pattern
-structure, such as scintillator or readout banding, that must be divided out). The result
+smoothed with a small Gaussian over its lit area only (so the screen border keeps its level),
+so that its own photon noise is not stamped onto every corrected radiograph (set
+``flat_smoothing_px = 0`` when the flat carries fine fixed-pattern structure, such as
+scintillator or readout banding, that must be divided out). See docs/algorithms/flatfield.md. The result
 stays in counts: the normalisation by the mean of ``F - D`` over the exposed area keeps the
 photon statistics of the radiograph, which the later stages (grey conversion, log domain)
 rely on.
@@ -316,8 +317,7 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
     denominator = flat - offset
     del flat
     if params.flat_smoothing_px > 0:
-        denominator = cv2.GaussianBlur(denominator, (0, 0), float(params.flat_smoothing_px),
-                                       borderType=cv2.BORDER_REFLECT)
+        denominator = _smooth_within_lit_area(denominator, float(params.flat_smoothing_px))
     steps.advance()
     chans = denominator.reshape(denominator.shape[0], denominator.shape[1], -1)
     step = max(1, int(np.sqrt(chans.shape[0] * chans.shape[1] / 1_000_000)))
@@ -335,6 +335,36 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
     steps.advance()
     return FlatReference(offset=offset, denominator=denominator, scale=scale,
                          n_flats=n_flats, cleaned_pulses=cleaned)
+
+
+# A pixel belongs to the flat's lit area above this fraction of its bright level (the 99.5th
+# percentile): half the level is where a blurred screen border crosses from dark to lit.
+_LIT_FRACTION = 0.5
+
+
+def _smooth_within_lit_area(denominator: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian smoothing of ``F - D`` that averages lit pixels only (normalised convolution).
+
+    A plain blur mixes the dark room into the flat within a few sigma of the screen border, so
+    the denominator sinks there and the corrected frame shows a bright rim inside the border
+    (16 % on the sample frame at 4 px). Dividing the blurred lit part by the blurred lit mask
+    keeps the border's level; pixels outside the lit area take the plain blur.
+    """
+    def blur(a: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(a, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+
+    chans = denominator.reshape(denominator.shape[0], denominator.shape[1], -1)
+    out = np.empty_like(chans)
+    for c in range(chans.shape[2]):
+        plane = np.ascontiguousarray(chans[..., c])
+        step = max(1, int(np.sqrt(plane.size / 1_000_000)))
+        top = float(np.percentile(plane[::step, ::step], 99.5))
+        lit = (plane > _LIT_FRACTION * top).astype(np.float32)
+        weight = blur(lit)
+        smooth_lit = blur(plane * lit)
+        inside = lit > 0
+        out[..., c] = np.where(inside, smooth_lit / np.maximum(weight, 1e-6), blur(plane))
+    return out.reshape(denominator.shape)
 
 
 def apply_flat_field(image: np.ndarray, reference: FlatReference) -> np.ndarray:
