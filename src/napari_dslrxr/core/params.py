@@ -154,6 +154,7 @@ SECTION_HELP = {
     "batch": "how dslrxr run spreads a batch: process pool or dask.distributed cluster (never changes outputs)",
     "psf_fit": "dslrxr psf fit: the joint edge fit (the edges themselves are listed in the edge configuration)",
     "diagnose": "dslrxr diagnose: which physics terms the diagnosis may add to the base model",
+    "qc": "dslrxr qc: detector MTF, NNPS and DQE per IEC 62220-1-1 (slanted edge, flats, darks)",
 }
 
 
@@ -165,8 +166,9 @@ def _command_sections() -> dict[str, type]:
     """
     from .diagnosis.params import DiagnoseParams
     from .psf.fit_params import PsfFitParams
+    from .qc.params import QcParams
 
-    return {"psf_fit": PsfFitParams, "diagnose": DiagnoseParams}
+    return {"psf_fit": PsfFitParams, "diagnose": DiagnoseParams, "qc": QcParams}
 
 
 def _build_section(section: str, cls, values: dict):
