@@ -136,8 +136,12 @@ def _esf(values, dist_px, sel, oversampling, half_width_px):
 
 def _esf_outliers(values, dist_px, sel, centres, esf, outlier_sigma):
     """Pixels whose residual from the ESF exceeds ``outlier_sigma`` robust sigmas of the
-    residuals at their distance (1-px bands: the noise differs between the dark and bright side)."""
+    residuals at their distance (1-px bands: the noise differs between the dark and bright side)
+    plus the ESF's change over one bin (the binned ESF cannot follow a sharp edge within a bin,
+    and that deterministic misfit must not count as a spot)."""
     resid = values - np.interp(dist_px, centres, esf)
+    step = float(centres[1] - centres[0])
+    slack = np.abs(np.interp(dist_px, centres, np.gradient(esf, step))) * step
     band = np.floor(dist_px).astype(int)
     out = np.zeros(values.shape, bool)
     for b in np.unique(band[sel]):
@@ -145,9 +149,10 @@ def _esf_outliers(values, dist_px, sel, centres, esf, outlier_sigma):
         r = resid[here]
         if r.size < 8:
             continue
-        sigma = robust_sigma(r, center=float(np.median(r)))
+        centre = float(np.median(r))
+        sigma = robust_sigma(r, center=centre)
         if sigma > 0:
-            out[here] = np.abs(r - np.median(r)) > outlier_sigma * sigma
+            out[here] = np.abs(r - centre) > outlier_sigma * sigma + slack[here]
     return out
 
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import InputError, ParameterError
 from .conversion import ConversionFunction, conversion_function
-from .edge import EdgeMTF, slanted_edge_mtf
+from .edge import EdgeMTF, fill_masked, slanted_edge_mtf, spot_mask
 from .nnps import NNPSResult, mean_dark, nnps_from_flats
 from .params import SNR2_IN_PER_UGY, QcParams
 
@@ -242,6 +242,7 @@ def measure_detector_quality(flats: Sequence[np.ndarray], darks: Sequence[np.nda
             progress(done, total_steps)
 
     dark = mean_dark(darks, shape)
+    dark = fill_masked(dark, spot_mask(dark, params.outlier_sigma))  # direct hits on the sensor
     # Conversion function from every flat's central area (the NNPS analysis area).
     size = int(params.nnps_area_fraction * min(shape))
     r0, c0 = (shape[0] - size) // 2, (shape[1] - size) // 2
@@ -258,18 +259,24 @@ def measure_detector_quality(flats: Sequence[np.ndarray], darks: Sequence[np.nda
                            outlier_sigma=params.outlier_sigma, names=[flat_names[i] for i in reference],
                            progress=lambda d, t: step())
     gain_map = None
+    dead = np.zeros(shape, bool)
     if params.flat_field_edge:
         mean_flat = np.mean([flats[i] - dark for i in reference], axis=0)
+        mean_flat = fill_masked(mean_flat, spot_mask(mean_flat, params.outlier_sigma))
         gain_map = mean_flat / float(mean_flat.mean())
-        if not (gain_map > 0.05).all():
-            raise InputError(flat_names[0], "the flat has pixels with almost no signal; cannot flat-field the "
-                                            "edge (set qc.flat_field_edge = false or fix the flat)")
+        dead = ~(gain_map > 0.05)
+        if dead.mean() > 0.05:
+            raise InputError(flat_names[0], f"{100 * dead.mean():.1f} % of the pixels have almost no signal above "
+                                            "the dark; cannot flat-field the edge (fix the flat, or set "
+                                            "qc.flat_field_edge = false)")
+        gain_map = np.where(dead, 1.0, gain_map)
     edge_results, rois, analysed = [], [], []
     rois_in = list(edge_rois) if edge_rois is not None else [None] * len(edges)
     if len(rois_in) != len(edges):
         raise ParameterError(f"--edge-roi: give one region per edge ({len(edges)}), got {len(rois_in)}")
     for e, n, roi in zip(edges, edge_names, rois_in):
         corrected = e - dark
+        valid = ~dead
         if gain_map is not None:
             corrected = corrected / gain_map
         if roi is not None:
@@ -277,9 +284,10 @@ def measure_detector_quality(flats: Sequence[np.ndarray], darks: Sequence[np.nda
             if not (0 <= a < c <= shape[0] and 0 <= b < d <= shape[1]):
                 raise ParameterError(f"--edge-roi: {list(roi)} is outside the {shape[0]}x{shape[1]} frame of {n}")
             corrected = corrected[a:c, b:d]
+            valid = valid[a:c, b:d]
         edge_results.append(slanted_edge_mtf(corrected, params.pixel_pitch_mm, oversampling=params.edge_oversampling,
                                              lsf_half_width_px=params.lsf_half_width_px,
-                                             outlier_sigma=params.outlier_sigma, name=n))
+                                             outlier_sigma=params.outlier_sigma, valid=valid, name=n))
         rois.append(list(roi) if roi is not None else None)
         analysed.append(corrected.astype(np.float32))
         step()

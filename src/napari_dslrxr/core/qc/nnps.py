@@ -126,6 +126,7 @@ def nnps_from_flats(flats: Sequence[np.ndarray], darks: Sequence[np.ndarray] | N
         if not np.isfinite(f).all():
             raise InputError(name, "NaN or infinite values")
     dark = mean_dark(darks, shape)
+    dark = fill_masked(dark, spot_mask(dark, outlier_sigma))
     area, origins = analysis_layout(shape, roi_size_px, area_fraction)
     if area is None:
         raise InputError(names[0], f"the frame ({shape[0]}x{shape[1]} px) is too small for a "
@@ -167,7 +168,7 @@ def nnps_from_flats(flats: Sequence[np.ndarray], darks: Sequence[np.ndarray] | N
     unc_v = binned_v.std(axis=0, ddof=1) / math.sqrt(n_indep) if total > 1 else np.full(centres.size, np.nan)
     if n_outliers > 1e-3 * len(flats) * (r1 - r0) * (c1 - c0):
         warnings.append(f"{n_outliers} spot pixels ({100.0 * n_outliers / (len(flats) * (r1 - r0) * (c1 - c0)):.2g} %) "
-                        "replaced by their local median in the flats before the NNPS")
+                        "replaced by the mean of their neighbours in the flats before the NNPS")
     return NNPSResult(
         frequency_cy_per_mm=centres / (n * pixel_pitch_mm),
         nnps_horizontal_mm2=binned_h.mean(axis=0), nnps_vertical_mm2=binned_v.mean(axis=0),

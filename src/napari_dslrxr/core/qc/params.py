@@ -61,6 +61,9 @@ class QcParams:
     linearity_tolerance_percent : float
         Largest allowed deviation of mean signal / air kerma from the fitted conversion
         function; beyond it the input is refused as not linear.
+    raw_plane : str
+        For camera raw input: the linear CFA plane analysed (its pixel pitch is twice the
+        sensor's; give the sensor pitch, the command doubles it).
     """
 
     beam: str = field(default="RQA5", metadata={
@@ -95,6 +98,9 @@ class QcParams:
     linearity_tolerance_percent: float = field(default=5.0, metadata={
         "help": "largest deviation of signal / air kerma from the conversion function before the input is refused",
         "unit": "%", "min": 0.1, "max": 100.0})
+    raw_plane: str = field(default="G1", metadata={
+        "help": "camera raw input: the linear CFA plane analysed (pitch = 2 x sensor pitch)",
+        "choices": ("R", "G1", "G2", "B")})
 
     def __post_init__(self) -> None:
         validate_fields(self, "qc")
