@@ -19,6 +19,7 @@ import numpy as np
 from .. import io
 from ..io import provenance
 from ..io.report_files import figure_png as _figure_png
+from ..io.report_files import report_folder
 from ..io.report_files import write_text as _write_text
 from ..simulation.physics_terms import LIBRARY_BY_NAME
 from .locating import multiscale_maps
@@ -172,13 +173,7 @@ def write_report(result: DiagnosisResult, out_dir: str | os.PathLike, *, inputs:
 
     The page names ``input_names`` (default: the ``inputs`` files) and the date ``created``
     when given (without it the bytes depend on the inputs only)."""
-    from ..errors import OutputError
-
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot create the report folder ({exc.strerror})") from None
+    out = report_folder(out_dir)
     inputs = [Path(p) for p in inputs]
     names = [str(p) for p in inputs] if input_names is None else list(input_names)
     params = parameters or {}

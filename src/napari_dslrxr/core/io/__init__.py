@@ -23,7 +23,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "validate_image", "read_image", "read_raw", "read_structured_file", "postprocess_linear",
         "file_sha256", "check_not_an_input", "atomic_write", "write_tiff", "write_png"),
     "dicom": ("DX_FOR_PRESENTATION", "ALLOWED_PATIENT_FIELDS", "deterministic_uid", "write_dicom_dx"),
-    "report_files": ("figure_png", "write_text"),
+    "report_files": ("figure_png", "write_text", "report_folder"),
     "provenance": ("sidecar_path", "to_jsonable", "describe_inputs", "library_versions", "write_sidecar"),
     "input_kind": ("CAMERA", "DISPLAY", "INPUT_KINDS", "InputKind", "InputParams", "decide_input_kind",
         "input_kind_of"),

@@ -7,7 +7,18 @@ import io as _bytesio
 from collections.abc import Iterable
 from pathlib import Path
 
+from ..errors import OutputError
 from .image_files import atomic_write
+
+
+def report_folder(path: str | Path) -> Path:
+    """Create the report folder (and its parents) if needed; refuse with one line if it cannot be."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the report folder ({exc.strerror})") from None
+    return out
 
 
 def figure_png(fig, dpi: int = 90) -> bytes:

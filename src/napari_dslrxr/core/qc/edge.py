@@ -9,7 +9,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..errors import InputError
-from ..robust import robust_sigma
+from ..robust import robust_line_fit, robust_sigma
 from .params import EDGE_ANGLE_RANGE_DEG
 
 #: Rows of the edge image per segment for the MTF uncertainty (the edge must move through
@@ -99,16 +99,10 @@ def _edge_positions(image: np.ndarray, valid: np.ndarray):
 def _fit_line(rows: np.ndarray, cols: np.ndarray, name: str):
     if rows.size < 16:
         raise InputError(name, "no straight edge found (too few rows cross an edge)")
-    keep = np.ones(rows.size, bool)
-    for _ in range(4):
-        slope, intercept = np.polyfit(rows[keep], cols[keep], 1)
-        resid = cols - (slope * rows + intercept)
-        spread = max(robust_sigma(resid[keep], center=0.0), 0.1)
-        keep = np.abs(resid) < 4.0 * spread
-        if keep.sum() < 16:
-            raise InputError(name, "no straight edge found (the edge positions do not fall on a line)")
-    slope, intercept = np.polyfit(rows[keep], cols[keep], 1)
-    return float(slope), float(intercept)
+    line = robust_line_fit(rows, cols, rounds=4, clip_sigma=4.0, min_spread=0.1, min_points=16)
+    if line is None:
+        raise InputError(name, "no straight edge found (the edge positions do not fall on a line)")
+    return line
 
 
 def _perpendicular_distance_px(shape, slope, intercept):

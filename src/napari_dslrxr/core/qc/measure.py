@@ -56,6 +56,9 @@ class DirectionResult:
     dqe_uncertainty: np.ndarray
 
 
+_CURVES = tuple(f.name for f in dataclasses.fields(DirectionResult))
+
+
 @dataclass
 class DetectorQuality:
     """MTF, NNPS and DQE of a detector (IEC 62220-1-1), with what they were measured from.
@@ -68,7 +71,8 @@ class DetectorQuality:
     ----------
     frequency_cy_per_mm : ndarray
     mtf, mtf_uncertainty, nnps_mm2, nnps_uncertainty_mm2, dqe, dqe_uncertainty : ndarray
-        Same length as ``frequency_cy_per_mm``; uncertainties are standard (1 sigma).
+        Read-only, of the main direction (``per_direction[direction]``); same length as
+        ``frequency_cy_per_mm``; uncertainties are standard (1 sigma).
     q_photons_per_mm2 : float
         Photon fluence of the flats: air kerma x SNR²_in per µGy of the beam.
     direction : str
@@ -92,12 +96,6 @@ class DetectorQuality:
     """
 
     frequency_cy_per_mm: np.ndarray
-    mtf: np.ndarray
-    mtf_uncertainty: np.ndarray
-    nnps_mm2: np.ndarray
-    nnps_uncertainty_mm2: np.ndarray
-    dqe: np.ndarray
-    dqe_uncertainty: np.ndarray
     q_photons_per_mm2: float
     direction: str
     per_direction: dict
@@ -112,6 +110,12 @@ class DetectorQuality:
     settings: dict = field(default_factory=dict)
     edge_images: list = field(default_factory=list, repr=False)
     flat_image: np.ndarray | None = field(default=None, repr=False)
+
+    def __getattr__(self, name: str):
+        # mtf, nnps_mm2, dqe and their uncertainties: those of the main direction
+        if name in _CURVES and "per_direction" in self.__dict__:
+            return getattr(self.per_direction[self.direction], name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     @property
     def nyquist_cy_per_mm(self) -> float:
@@ -305,15 +309,12 @@ def measure_detector_quality(flats: Sequence[np.ndarray], darks: Sequence[np.nda
             n_val, n_unc = nnps.nnps_vertical_mm2, nnps.uncertainty_vertical_mm2
         d_val, d_unc = dqe(mtf, n_val, q, mtf_uncertainty=mtf_unc, nnps_uncertainty_mm2=n_unc)
         per_direction[res.direction] = DirectionResult(mtf, mtf_unc, n_val, n_unc, d_val, d_unc)
-    main = per_direction[edge_results[0].direction]
     warnings = list(conv.warnings) + list(nnps.warnings) + [w for r in edge_results for w in r.warnings]
     if len(edge_results) > len(per_direction):
         warnings.append("two edges of the same orientation: only the first is reported")
     step()
     return DetectorQuality(
-        frequency_cy_per_mm=freq, mtf=main.mtf, mtf_uncertainty=main.mtf_uncertainty, nnps_mm2=main.nnps_mm2,
-        nnps_uncertainty_mm2=main.nnps_uncertainty_mm2, dqe=main.dqe, dqe_uncertainty=main.dqe_uncertainty,
-        q_photons_per_mm2=q, direction=edge_results[0].direction, per_direction=per_direction, edges=edge_results,
+        frequency_cy_per_mm=freq, q_photons_per_mm2=q, direction=edge_results[0].direction, per_direction=per_direction, edges=edge_results,
         edge_rois=rois, nnps=nnps, conversion=conv, pixel_pitch_mm=params.pixel_pitch_mm,
         air_kerma_ugy=params.air_kerma_ugy, beam=params.beam, warnings=warnings,
         settings=dataclasses.asdict(params), edge_images=analysed,

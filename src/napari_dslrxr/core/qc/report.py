@@ -16,9 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import OutputError
 from ..io import provenance
-from ..io.report_files import figure_png, write_text
+from ..io.report_files import figure_png, report_folder, write_text
 from .measure import DetectorQuality
 
 _DIRECTION_LABEL = {"horizontal": "horizontal (along rows)", "vertical": "vertical (along columns)"}
@@ -206,11 +205,7 @@ def write_qc_outputs(result: DetectorQuality, outdir: str | os.PathLike, *, inpu
                      timings_s: dict | None = None) -> dict[str, Path]:
     """Write ``qc.json``, ``qc.csv`` and ``qc.html`` into ``outdir``, each with a JSON sidecar
     (parameters, version, input checksums, timings). Returns the paths by name."""
-    out = Path(outdir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot create the output folder ({exc.strerror})") from None
+    out = report_folder(outdir)
     inputs = [Path(p) for p in inputs]
     names = [str(p) for p in inputs] if input_names is None else list(input_names)
     record = result.to_json()
