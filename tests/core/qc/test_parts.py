@@ -106,3 +106,14 @@ def test_missing_pitch_or_air_kerma_is_a_parameter_error():
         measure_detector_quality(flats, [], flats[0], air_kerma_ugy=1.0)
     with pytest.raises(ParameterError, match="air kerma at the detector is required"):
         measure_detector_quality(flats, [], flats[0], pixel_pitch_mm=0.1)
+
+
+def test_progress_is_reported_up_to_the_total():
+    rng = np.random.default_rng(6)
+    det = dt.Detector(0.1, 0.5, 5.0)
+    flats = [dt.flat_frame(det, (300, 300), rng) for _ in range(3)]
+    edge = dt.edge_frame(det, (300, 300), rng)
+    steps = []
+    measure_detector_quality(flats, [], edge, pixel_pitch_mm=0.1, air_kerma_ugy=5.0, params=QcParams(roi_size_px=128),
+                             progress=lambda done, total: steps.append((done, total)))
+    assert steps == [(i, 5) for i in range(1, 6)]  # three flats, one edge, the DQE
