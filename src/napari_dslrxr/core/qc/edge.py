@@ -171,7 +171,7 @@ def _mtf_from_esf(esf, step_mm, pitch_mm, oversampling, half_width_px, n_fft):
 
 
 def slanted_edge_mtf(edge_image: np.ndarray, pixel_pitch_mm: float, *, oversampling: int = 4,
-                     lsf_half_width_px: int = 32, outlier_sigma: float = 6.0, valid: np.ndarray | None = None,
+                     lsf_half_width_px: int = 64, outlier_sigma: float = 6.0, valid: np.ndarray | None = None,
                      name: str = "edge image") -> EdgeMTF:
     """Presampled MTF of a straight edge slanted by a few degrees to the pixel grid.
 

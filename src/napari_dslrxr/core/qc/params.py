@@ -88,7 +88,7 @@ class QcParams:
         "min": 1, "max": 32})
     edge_oversampling: int = field(default=4, metadata={
         "help": "edge-spread-function bins per pixel pitch", "min": 2, "max": 16})
-    lsf_half_width_px: int = field(default=32, metadata={
+    lsf_half_width_px: int = field(default=64, metadata={
         "help": "half width of the line-spread-function window", "unit": "px", "min": 4, "max": 1024})
     outlier_sigma: float = field(default=6.0, metadata={
         "help": "leave out pixels beyond this many robust sigmas of their neighbourhood (spots); 0 keeps all",
