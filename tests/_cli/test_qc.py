@@ -188,3 +188,19 @@ def test_qc_refuses_a_colour_image(tmp_path, frames):
     proc = _dslrxr("qc", "--flat", rgb, "--edge", paths["edge"][0], "--pixel-pitch-mm", 0.1,
                    "--air-kerma-ugy", 1, "-o", tmp_path / "o")
     assert proc.returncode == 2 and "rgb.tif: a colour image is not a linear detector frame" in proc.stderr
+
+
+def test_edge_line_is_reported_in_frame_pixels(frames, tmp_path):
+    _, paths = frames
+    out = tmp_path / "roi_out"
+    args = _args(paths, out) + ["--edge-roi", "100,150,500,450", "--edge-roi", "150,100,450,500"]
+    proc = _dslrxr(*args)
+    assert proc.returncode == 0, proc.stderr
+    edges = json.loads((out / "qc.json").read_text())["edges"]
+    assert edges[0]["roi"] == [100, 150, 500, 450]
+    r0, c0, r1, c1 = edges[0]["edge_line_rc"]
+    # the near-vertical edge passes through the frame centre (300, 300) at 2.2 degrees
+    col_at_centre = c0 + (300 - r0) * (c1 - c0) / (r1 - r0)
+    assert col_at_centre == pytest.approx(300, abs=1.0)
+    r0, c0, r1, c1 = edges[1]["edge_line_rc"]
+    assert r0 + (300 - c0) * (r1 - r0) / (c1 - c0) == pytest.approx(300, abs=1.0)

@@ -139,7 +139,8 @@ class DetectorQuality:
             "beam": self.beam, "snr2_in_per_ugy": SNR2_IN_PER_UGY[self.beam],
             "air_kerma_ugy": self.air_kerma_ugy, "pixel_pitch_mm": self.pixel_pitch_mm,
             "nyquist_cy_per_mm": self.nyquist_cy_per_mm,
-            "edges": [{"direction": e.direction, "angle_deg": e.angle_deg, "edge_line_rc": e.edge_line,
+            "edges": [{"direction": e.direction, "angle_deg": e.angle_deg,
+                       "edge_line_rc": _in_frame(e.edge_line, roi),
                        "roi": roi, "n_segments": e.n_segments, "n_outliers": e.n_outliers}
                       for e, roi in zip(self.edges, self.edge_rois)],
             "nnps_rois": {"size_px": self.settings.get("roi_size_px"), "origins_rc": self.nnps.roi_origins,
@@ -150,6 +151,12 @@ class DetectorQuality:
             "warnings": self.warnings,
             "settings": self.settings,
         })
+
+
+def _in_frame(line, roi) -> list[float]:
+    """An edge line ``(row0, col0, row1, col1)`` measured in a region, in whole-frame pixels."""
+    r0, c0 = (roi[0], roi[1]) if roi is not None else (0, 0)
+    return [line[0] + r0, line[1] + c0, line[2] + r0, line[3] + c0]
 
 
 def _as_list(frames) -> list[np.ndarray]:
