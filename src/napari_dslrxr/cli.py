@@ -58,9 +58,9 @@ def _root(
 
 
 def _register_commands() -> None:
-    from ._cli import blur, deconvolve, denoise, pipeline, simulate, view
+    from ._cli import blur, deconvolve, denoise, pipeline, qc, simulate, view
 
-    for module in (denoise, pipeline, blur, deconvolve, simulate, view):
+    for module in (denoise, pipeline, blur, deconvolve, simulate, qc, view):
         module.register(app)
 
 

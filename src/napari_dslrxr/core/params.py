@@ -154,6 +154,7 @@ SECTION_HELP = {
     "batch": "how dslrxr run spreads a batch: process pool or dask.distributed cluster (never changes outputs)",
     "psf_fit": "dslrxr psf fit: the joint edge fit (the edges themselves are listed in the edge configuration)",
     "diagnose": "dslrxr diagnose: which physics terms the diagnosis may add to the base model",
+    "qc": "dslrxr qc: detector MTF, NNPS and DQE per IEC 62220-1-1 (slanted edge, flats, darks)",
 }
 
 
@@ -165,8 +166,9 @@ def _command_sections() -> dict[str, type]:
     """
     from .diagnosis.params import DiagnoseParams
     from .psf.fit_params import PsfFitParams
+    from .qc.params import QcParams
 
-    return {"psf_fit": PsfFitParams, "diagnose": DiagnoseParams}
+    return {"psf_fit": PsfFitParams, "diagnose": DiagnoseParams, "qc": QcParams}
 
 
 def _build_section(section: str, cls, values: dict):
@@ -260,7 +262,7 @@ def _read_file(path: Path) -> dict:
 def load_params(path: str | os.PathLike) -> PipelineParams:
     """Read a parameter file; missing keys take their defaults.
 
-    Every section is checked, the command sections (``[psf_fit]``, ``[diagnose]``) too.
+    Every section is checked, the command sections (``[psf_fit]``, ``[diagnose]``, ``[qc]``) too.
 
     Raises
     ------
@@ -309,7 +311,7 @@ def params_to_toml(params: PipelineParams | None = None, *, comments: bool = Tru
     """The TOML text of ``params`` (default: the defaults), with a comment above every key.
 
     ``run_sections=False`` leaves out :data:`RUN_ONLY_SECTIONS`; ``commands`` adds the command
-    sections (``[psf_fit]``, ``[diagnose]``) after the pipeline's.
+    sections (``[psf_fit]``, ``[diagnose]``, ``[qc]``) after the pipeline's.
     """
     params = params or PipelineParams()
     # The first line is part of the text that seeds the run's DICOM UIDs: keep it as it is.
@@ -317,7 +319,7 @@ def params_to_toml(params: PipelineParams | None = None, *, comments: bool = Tru
              "# Missing keys take their defaults; unknown keys are an error.", ""]
     if commands:
         lines.insert(1, "# The same file sets dslrxr denoise ([impulse]), deconvolve ([deblur]), "
-                        "psf fit ([psf_fit]) and diagnose ([diagnose]): -c this_file.toml.")
+                        "psf fit ([psf_fit]), diagnose ([diagnose]) and qc ([qc]): -c this_file.toml.")
     sections = [(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)
                 if run_sections or f.name not in RUN_ONLY_SECTIONS]
     sections += list((commands or {}).items())

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io as _bytesio
 import json
 import os
 from pathlib import Path
@@ -19,6 +18,9 @@ import numpy as np
 
 from .. import io
 from ..io import provenance
+from ..io.report_files import figure_png as _figure_png
+from ..io.report_files import report_folder
+from ..io.report_files import write_text as _write_text
 from ..simulation.physics_terms import LIBRARY_BY_NAME
 from .locating import multiscale_maps
 from .result import DiagnosisResult
@@ -31,12 +33,6 @@ PROFILE_LABELS = {
     "rows": "row (px)",
     "thickness_mm": "thickness (mm)",
 }
-
-
-def _figure_png(fig) -> bytes:
-    buf = _bytesio.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, metadata={"Software": None})
-    return buf.getvalue()
 
 
 def residual_maps_figure(result: DiagnosisResult, scale: int = 4, title: str = "") -> bytes:
@@ -97,14 +93,6 @@ def write_png_bytes(path: str | os.PathLike, data: bytes, *, inputs: Iterable = 
     def _write(tmp: str) -> None:
         with open(tmp, "wb") as fh:
             fh.write(data)
-
-    return io.atomic_write(path, _write, inputs=inputs)
-
-
-def _write_text(path: Path, text: str, inputs: Iterable) -> Path:
-    def _write(tmp: str) -> None:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
 
     return io.atomic_write(path, _write, inputs=inputs)
 
@@ -185,13 +173,7 @@ def write_report(result: DiagnosisResult, out_dir: str | os.PathLike, *, inputs:
 
     The page names ``input_names`` (default: the ``inputs`` files) and the date ``created``
     when given (without it the bytes depend on the inputs only)."""
-    from ..errors import OutputError
-
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{out}: cannot create the report folder ({exc.strerror})") from None
+    out = report_folder(out_dir)
     inputs = [Path(p) for p in inputs]
     names = [str(p) for p in inputs] if input_names is None else list(input_names)
     params = parameters or {}

@@ -3,6 +3,7 @@
 * :mod:`.image_files` - checked readers for TIFF, PNG, DICOM and camera raw, atomic TIFF/PNG
   writers, structured (TOML/JSON) files and checksums;
 * :mod:`.dicom` - the DICOM DX writer with deterministic UIDs;
+* :mod:`.report_files` - figures as PNG bytes and text reports, written atomically;
 * :mod:`.provenance` - the JSON sidecar written beside every output (parameters, version, input
   checksums, timings);
 * :mod:`.input_kind` - whether an input is a camera frame (linear light) or a display radiograph
@@ -22,6 +23,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "validate_image", "read_image", "read_raw", "read_structured_file", "postprocess_linear",
         "file_sha256", "check_not_an_input", "atomic_write", "write_tiff", "write_png"),
     "dicom": ("DX_FOR_PRESENTATION", "ALLOWED_PATIENT_FIELDS", "deterministic_uid", "write_dicom_dx"),
+    "report_files": ("figure_png", "write_text", "report_folder"),
     "provenance": ("sidecar_path", "to_jsonable", "describe_inputs", "library_versions", "write_sidecar"),
     "input_kind": ("CAMERA", "DISPLAY", "INPUT_KINDS", "InputKind", "InputParams", "decide_input_kind",
         "input_kind_of"),

@@ -11,7 +11,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..errors import InputError, ParameterError
-from ..robust import robust_sigma
+from ..robust import robust_line_fit, robust_sigma
 from .model import magnification_factor
 
 
@@ -198,15 +198,10 @@ def _detect_edge(y: np.ndarray, valid: np.ndarray, name: str):
     rows, cols = np.asarray(rows, float), np.asarray(cols, float)
     if rows.size < 8:
         raise InputError(name, "no straight edge found in the region (give an roi holding one edge)")
-    keep = np.ones(rows.size, bool)
-    for _ in range(3):
-        slope, intercept = np.polyfit(rows[keep], cols[keep], 1)
-        resid = cols - (slope * rows + intercept)
-        spread = max(robust_sigma(resid[keep], center=0.0), 0.5)
-        keep = np.abs(resid) < 3.0 * spread
-        if keep.sum() < 8:
-            raise InputError(name, "no straight edge found in the region (give an roi holding one edge)")
-    slope, intercept = np.polyfit(rows[keep], cols[keep], 1)
+    line = robust_line_fit(rows, cols, rounds=3, clip_sigma=3.0, min_spread=0.5, min_points=8)
+    if line is None:
+        raise InputError(name, "no straight edge found in the region (give an roi holding one edge)")
+    slope, intercept = line
     # Line col = slope * row + intercept (in transposed coordinates when the edge is horizontal).
     r_mid = 0.5 * (data.shape[0] - 1)
     point = (slope * r_mid + intercept, r_mid)             # (col, row) in the scanned frame
