@@ -155,24 +155,30 @@ def test_local_cluster_from_the_parameter_file_matches_jobs_1_and_a_bad_file_fai
     assert side["results"]["batch"] == {"scheduler": "local"} and "batch" not in side["parameters"]
 
 
-def test_references_are_prepared_once_and_scattered(tmp_path, small_batch, monkeypatch):
-    """Workers take the flat reference and the PSF kernel from the scattered data: the flats,
-    darks and PSF model are read once for the batch, not once per worker or file."""
+def _psf_model(folder: Path) -> Path:
+    from napari_dslrxr.core.psf import PSFModel, save_psf
+
+    return save_psf(PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.3, source_fwhm_y_mm=0.3,
+                             detector_fwhm_core_mm=0.15, detector_fwhm_tail_mm=0.4,
+                             detector_weight_core=0.8, shape_power=1.5), folder / "psf.json")
+
+
+def test_a_worker_prepares_the_references_once_even_with_two_threads(tmp_path, small_batch, monkeypatch):
+    """Two worker threads in one process (as a worker started with two threads) read the flats,
+    darks and PSF model once for the batch, not once per thread or file."""
     from distributed import LocalCluster
 
     from napari_dslrxr._cli import cluster as cli_cluster
     from napari_dslrxr.core import pipeline as core_pipeline
     from napari_dslrxr.core import psf as core_psf
-    from napari_dslrxr.core.psf import PSFModel, save_psf
 
-    psf = save_psf(PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.3, source_fwhm_y_mm=0.3,
-                            detector_fwhm_core_mm=0.15, detector_fwhm_tail_mm=0.4,
-                            detector_weight_core=0.8, shape_power=1.5), tmp_path / "psf.json")
+    psf = _psf_model(tmp_path)
     frame_reads, psf_reads = [], []
     real_load_frames, real_load_psf = core_pipeline.load_frames, core_psf.load_psf
     monkeypatch.setattr(core_pipeline, "load_frames", lambda paths: frame_reads.append(list(paths)) or real_load_frames(paths))
     monkeypatch.setattr(core_psf, "load_psf", lambda path: psf_reads.append(path) or real_load_psf(path))
     monkeypatch.setattr(cli_cluster, "_worker_references", {})
+    monkeypatch.setattr(cli_cluster, "_prepared_sets", set())
     shots = small_batch["shots"]
     common = [*map(str, shots), "--flat", str(small_batch["flat"]), "--dark", str(small_batch["dark"]), "--psf",
               str(psf), "--source-to-object-mm", "500", "--source-to-detector-mm", "1000"]
@@ -184,6 +190,44 @@ def test_references_are_prepared_once_and_scattered(tmp_path, small_batch, monke
     kinds = sorted(str(key[0]) for key in cli_cluster._worker_references)
     assert len(kinds) == 2 and "psf" in kinds  # one flat reference, one kernel
     assert main(["run", *common, "-o", str(tmp_path / "jobs1")]) == 0
+    assert _images(tmp_path / "cluster") == _images(tmp_path / "jobs1")
+
+
+@pytest.mark.slow
+def test_each_worker_process_prepares_the_references_at_most_once(tmp_path, small_batch):
+    """Real worker processes: each reads the flat, the dark and the PSF model at most once,
+    however many files it runs, and the outputs are those of --jobs 1."""
+    # defined here so that dask sends it to the workers by value (they cannot import the tests)
+    def _count_reference_reads() -> None:
+        """In a worker process: count the reference frames and PSF models it reads from now on."""
+        from napari_dslrxr.core import pipeline as core_pipeline
+        from napari_dslrxr.core import psf as core_psf
+
+        reads = core_pipeline.__dict__.setdefault("_test_reference_reads", [])
+        real_load_frames, real_load_psf = core_pipeline.load_frames, core_psf.load_psf
+        core_pipeline.load_frames = lambda paths: reads.append(tuple(paths)) or real_load_frames(paths)
+        core_psf.load_psf = lambda path: reads.append(("psf", str(path))) or real_load_psf(path)
+
+    psf = _psf_model(tmp_path)
+    shots = small_batch["shots"] * 2  # 8 files for 2 workers: each runs several
+    copies = tmp_path / "inputs"
+    copies.mkdir()
+    inputs = [copies / f"f{i}.tif" for i in range(len(shots))]
+    for src, dst in zip(shots, inputs, strict=True):
+        dst.write_bytes(src.read_bytes())
+    refs = ["--flat", str(small_batch["flat"]), "--dark", str(small_batch["dark"]), "--psf", str(psf),
+            "--source-to-object-mm", "500", "--source-to-detector-mm", "1000"]
+    with _external_cluster(tmp_path, 2) as (address, _, client):
+        client.run(_count_reference_reads)
+        run = _dslrxr("run", *map(str, inputs), *refs, "-o", str(tmp_path / "cluster"), "--scheduler", address)
+        reads = client.run(lambda: __import__("napari_dslrxr.core.pipeline", fromlist=["x"]).__dict__.get(
+            "_test_reference_reads", []))
+    assert run.returncode == 0, run.stderr
+    expected = [(str(small_batch["flat"]),), (str(small_batch["dark"]),), ("psf", str(psf))]
+    for worker, worker_reads in reads.items():  # once with its first file, or never (no file)
+        assert sorted(worker_reads) == sorted(expected) or worker_reads == [], (worker, worker_reads)
+    assert any(reads.values())  # 8 files on 2 workers: one of them ran at least 4 with one read each
+    assert main(["run", *map(str, inputs), *refs, "-o", str(tmp_path / "jobs1")]) == 0
     assert _images(tmp_path / "cluster") == _images(tmp_path / "jobs1")
 
 

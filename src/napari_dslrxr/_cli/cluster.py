@@ -1,9 +1,17 @@
 """``dslrxr run --scheduler``: the batch as one dask.distributed task per input file.
 
 The per-file work is :func:`napari_dslrxr.core.pipeline.run_file`, exactly as with ``--jobs``
-(same atomic writes and sidecars, so the outputs have the same bytes). The flat/dark reference
-and the PSF kernel are prepared once here and scattered to every worker, which looks them up
-in its ``reference_cache`` instead of reading the reference files again.
+(same atomic writes and sidecars, so the outputs have the same bytes). Each worker process
+prepares the flat/dark reference and the PSF kernel from the reference files once, with its
+first file, and keeps them in its ``reference_cache`` for its later files, as the process pool's
+workers do. They are not prepared by the command and scattered: a 24 MP reference is 576 MB, and
+preparing it in the command then sending it to every worker left the workers idle for longer
+than each of them takes to prepare it (and the command held 3 GB).
+
+The workers of ``--scheduler local`` share the cores out to their native libraries (OpenCV, BLAS:
+one thread each on a 2-core machine with 2 workers) and keep glibc's own heap trimming: dask's
+default ``MALLOC_TRIM_THRESHOLD_`` for worker processes made every large temporary array of the
+pipeline a fresh mapping (about 9 times the page faults of one process).
 
 dask reschedules the task of a worker that dies (a file is written under a temporary name and
 renamed, so a killed worker leaves no partial output); a task that kills
@@ -21,6 +29,7 @@ import logging
 import os
 import resource
 import sys
+import threading
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -30,9 +39,15 @@ from ..core.errors import DslrxrError, ParameterError
 #: Seconds to wait for an address given with ``--scheduler`` to answer.
 CONNECT_TIMEOUT_S = 20
 
-#: The references scattered to this worker process, plus any that ``run_file`` prepared here
-#: for an input the batch did not foresee (a worker keeps them for its later files).
+#: The flat references and PSF kernels this worker process prepared (keyed as ``run_file`` looks
+#: them up), kept for its later files.
 _worker_references: dict = {}
+
+#: Reference sets (flats, darks, PSF, geometry, dark offset, parameters) this worker has prepared;
+#: the first file of a set runs under ``_first_file_lock``, so a worker with several threads
+#: prepares a set once, not once per thread.
+_prepared_sets: set = set()
+_first_file_lock = threading.Lock()
 
 
 class ClusterError(DslrxrError):
@@ -48,13 +63,35 @@ def import_distributed():
     return distributed
 
 
-def _run_on_worker(job: dict, references: dict | None) -> tuple[str, bool, str, float]:
-    """The task of one file: :func:`_process_one` with the scattered references."""
+def _reference_set(job: dict) -> tuple:
+    """What a job's prepared references depend on: the same tuple, the same references."""
+    from ..core.params import params_from_dict
+    from ..core.pipeline import input_black_level
+
+    params = params_from_dict(job["params"])
+    return (tuple(job["flats"]), tuple(job["darks"]), job["psf"], job["sod"], job["sdd"],
+            repr(input_black_level(job["input"], params)), repr(params.flatfield))
+
+
+def _run_on_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
+    """The task of one file: :func:`_process_one` with this worker's prepared references."""
     from .pipeline import _process_one
 
-    for key, value in (references or {}).items():
-        _worker_references.setdefault(key, value)
-    return _process_one(job, _worker_references)
+    key = _reference_set(job)
+    if key in _prepared_sets:
+        return _process_one(job, _worker_references)
+    with _first_file_lock:  # the first file of a reference set prepares it, once per worker
+        outcome = _process_one(job, _worker_references)
+        if outcome[1]:
+            _prepared_sets.add(key)
+    return outcome
+
+
+def native_threads_per_process(n_processes: int) -> int:
+    """Threads each of ``n_processes`` worker processes on this machine gives its native
+    libraries (OpenCV, BLAS, OpenMP): the cores shared out, at least one. One process alone
+    uses every core in OpenCV; several each doing so would oversubscribe the cores."""
+    return max(1, (os.cpu_count() or 1) // max(1, n_processes))
 
 
 def _peak_rss_mb() -> float:
@@ -68,8 +105,16 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
     at the end, or on the scheduler at the address ``scheduler``."""
     distributed = import_distributed()
     if scheduler == "local":
-        cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                           dashboard_address=":0", silence_logs=logging.ERROR)
+        import dask
+
+        threads = str(native_threads_per_process(n_workers))
+        # read by the workers' native libraries at start (OpenCV, BLAS, OpenMP); None drops dask's
+        # trim threshold, under which each large temporary array became a fresh mapping
+        environ = {"MALLOC_TRIM_THRESHOLD_": None, "OPENCV_FOR_THREADS_NUM": threads, "OMP_NUM_THREADS": threads,
+                   "OPENBLAS_NUM_THREADS": threads, "MKL_NUM_THREADS": threads}
+        with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in environ.items()}):
+            cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                               dashboard_address=":0", silence_logs=logging.ERROR)
         try:
             with distributed.Client(cluster, set_as_default=False) as client:
                 yield client
@@ -118,7 +163,7 @@ def _failed_task_message(exc: BaseException) -> str:
     return f"internal error on a worker ({type(exc).__name__}: {_short(exc)})"
 
 
-def run_on_cluster(todo: list[dict], references: dict, *, scheduler: str, n_workers: int,
+def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
                    report: Callable[[int, tuple[str, bool, str, float]], None]) -> None:
     """Run each job of ``todo`` as one task; call ``report(i, outcome)`` as files finish.
 
@@ -143,10 +188,8 @@ def run_on_cluster(todo: list[dict], references: dict, *, scheduler: str, n_work
         print(f"dslrxr: dask dashboard: {link}" if link else
               "dslrxr: no dask dashboard (install bokeh>=3.1 for one)", file=sys.stderr)
         try:
-            # prepared once, held by every worker (a worker that joins later fetches it from a peer)
-            [shared] = client.scatter([references], broadcast=True, hash=False)
             run_id = uuid.uuid4().hex[:8]
-            futures = [client.submit(_run_on_worker, job, shared, pure=False,
+            futures = [client.submit(_run_on_worker, job, pure=False,
                                      key=f"dslrxr-run-{run_id}-{i}-{Path(job['input']).name}")
                        for i, job in enumerate(todo)]
             by_key = {f.key: job for f, job in zip(futures, todo, strict=True)}
@@ -175,7 +218,7 @@ def run_on_cluster(todo: list[dict], references: dict, *, scheduler: str, n_work
                       file=sys.stderr)
         except ClusterError as exc:
             raise ClusterError(f"{exc}: {_after_loss(finished, len(todo))}") from None
-        except (OSError, TimeoutError) as exc:  # comm errors while scattering or submitting
+        except (OSError, TimeoutError) as exc:  # comm errors while submitting
             raise ClusterError(f"lost the connection to {where} ({_short(exc)}): "
                                f"{_after_loss(finished, len(todo))}") from None
 

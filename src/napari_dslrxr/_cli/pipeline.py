@@ -109,7 +109,6 @@ def register(app: typer.Typer) -> None:
         checksums, parameters and version; otherwise it is processed again.
         """
         from ..core.params import PipelineParams, load_params, params_to_dict, validate_params
-        from ..core.pipeline import prepare_batch_references
         from ..core.rerun import check_finished
 
         params = load_params(config) if config is not None else PipelineParams()
@@ -181,12 +180,7 @@ def register(app: typer.Typer) -> None:
         if scheduler and total:
             from .cluster import run_on_cluster
 
-            references = prepare_batch_references(files, params=params, flat_paths=[str(p) for p in flat],
-                                                  dark_paths=[str(p) for p in dark],
-                                                  psf_path=str(psf) if psf else None,
-                                                  source_to_object_mm=source_to_object_mm,
-                                                  source_to_detector_mm=source_to_detector_mm)
-            run_on_cluster(todo, references, scheduler=scheduler, n_workers=jobs, report=report)
+            run_on_cluster(todo, scheduler=scheduler, n_workers=jobs, report=report)
         elif jobs > 1 and total > 1:
             with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool:
                 for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
