@@ -5,9 +5,12 @@ pipeline three times, each run a separate ``dslrxr`` process writing its own fol
 ``--jobs 1``; ``--jobs 2`` (process pool); ``--scheduler local --jobs 2`` (a 2-worker dask
 LocalCluster, one thread each). Reports files per second, the ratios, the peak resident
 memory of the largest process of each run (``wait4``: the command and every worker it
-started) and, for the cluster, each worker's own peak as the command prints it; checks that
-the three runs wrote the same bytes. Goal on a 2-core machine: the cluster >= 1.8x the
-one-process throughput and within 5 % of the process pool.
+started) and, for the cluster, each worker's own peak as the command prints it; the CPU time
+of each run (all its processes) over its wall time, i.e. the cores it kept busy on average,
+and from ``--jobs 1``'s figure the bound on any parallel speedup on this machine (cores / cores
+one process keeps busy, since the CPU time per file does not shrink when files run side by
+side); checks that the three runs wrote the same bytes. Goal on a 2-core machine: the cluster
+>= 1.8x the one-process throughput and within 5 % of the process pool.
 
 The frames are one generated phantom shifted by a few pixels per file (generating eight 24 MP
 phantoms would take longer than the benchmark). Usage:
@@ -53,7 +56,9 @@ def _run(args: list[str]) -> dict:
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"dslrxr run {' '.join(args)} failed:\n{stderr}")
     found = re.search(r"peak memory per worker: ([\d, ]+) MiB", stderr)
-    return {"wall_s": round(wall, 2), "max_process_rss_mb": round(usage.ru_maxrss / 1024.0, 1),
+    cpu = usage.ru_utime + usage.ru_stime  # the command and every worker process it started and reaped
+    return {"wall_s": round(wall, 2), "cpu_s": round(cpu, 1), "cores_busy_on_average": round(cpu / wall, 2),
+            "max_process_rss_mb": round(usage.ru_maxrss / 1024.0, 1),
             "worker_peak_rss_mb": [float(v) for v in found.group(1).split(",")] if found else None,
             "load_average_1min_before": round(load_before, 2), "load_average_1min_after": round(os.getloadavg()[0], 2)}
 
@@ -88,6 +93,9 @@ def main() -> int:
         "cluster_vs_jobs_1": round(throughput["local_cluster_2"] / throughput["jobs_1"], 3),
         "cluster_vs_process_pool": round(throughput["local_cluster_2"] / throughput["process_pool_2"], 3),
         "pool_vs_jobs_1": round(throughput["process_pool_2"] / throughput["jobs_1"], 3),
+        # one process already keeps cores_busy_on_average cores busy: with the same CPU time per
+        # file, n processes cannot go faster than cpus / that (the per-file CPU time only grows)
+        "parallel_speedup_bound": round((os.cpu_count() or 1) / runs["jobs_1"]["cores_busy_on_average"], 2),
         "outputs_identical": identical,
         "target": "cluster >= 1.8x jobs_1 and >= 0.95x process pool, on an otherwise idle 2-core machine",
     }
