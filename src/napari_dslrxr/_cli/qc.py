@@ -102,7 +102,7 @@ def register(app: typer.Typer) -> None:
                                  timings_s={"read": t_read, "measure": t_measure})
         i = int(abs(result.frequency_cy_per_mm - 0.5 * result.nyquist_cy_per_mm).argmin())
         for w in result.warnings:
-            typer.echo(f"warning: {w}", err=True)
+            typer.echo(f"dslrxr: warning: {w}", err=True)
         typer.echo(f"wrote {paths['json']}, {paths['csv'].name}, {paths['html'].name}: at "
                    f"{result.frequency_cy_per_mm[i]:.3g} cycles/mm MTF {result.mtf[i]:.3f}, "
                    f"DQE {result.dqe[i]:.3f} ± {result.dqe_uncertainty[i]:.3f} ({result.direction})")
