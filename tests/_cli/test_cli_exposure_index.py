@@ -32,18 +32,18 @@ def _dslrxr(*args) -> None:
     assert proc.returncode == 0, f"dslrxr {' '.join(map(str, args))} exited {proc.returncode}: {proc.stderr}"
 
 
-def _expose(transmission: np.ndarray, k_ugy: float, counts_per_quantum: float,
+def expose(transmission: np.ndarray, k_ugy: float, counts_per_quantum: float,
             rng: np.random.Generator) -> np.ndarray:
     quanta = rng.poisson(QUANTA_PER_UGY * k_ugy * transmission)
     counts = counts_per_quantum * quanta + DARK_OFFSET + rng.normal(0.0, READ_NOISE, transmission.shape)
     return np.clip(np.round(counts), 0, 65535).astype(np.uint16)
 
 
-def _dark(shape, rng) -> np.ndarray:
+def dark_frame(shape, rng) -> np.ndarray:
     return np.round(DARK_OFFSET + rng.normal(0.0, READ_NOISE, shape)).astype(np.uint16)
 
 
-def _analytic_object(shape=(240, 320)) -> tuple[np.ndarray, np.ndarray]:
+def analytic_object(shape=(240, 320)) -> tuple[np.ndarray, np.ndarray]:
     """Transmission of a 6 cm soft-tissue ellipse with a bone rod in an open beam, and the object's mask."""
     h, w = shape
     y, x = np.mgrid[0:h, 0:w]
@@ -72,12 +72,12 @@ def _run_exposures(folder: Path, transmission: np.ndarray, *, counts_per_quantum
     inputs = []
     for k in (k_ugy, 2 * k_ugy):
         inputs.append(write_tiff(folder / f"frame_{tag}_{k:g}.tif",
-                                 _expose(transmission * illumination, k, counts_per_quantum, rng)))
-    dark = write_tiff(folder / f"dark_{tag}.tif", _dark(transmission.shape, rng))
+                                 expose(transmission * illumination, k, counts_per_quantum, rng)))
+    dark = write_tiff(folder / f"dark_{tag}.tif", dark_frame(transmission.shape, rng))
     refs = ["--dark", dark]
     if flat_illumination is not None:
         refs += ["--flat", write_tiff(folder / f"flat_{tag}.tif",
-                                      _expose(np.broadcast_to(illumination, transmission.shape), 20.0,
+                                      expose(np.broadcast_to(illumination, transmission.shape), 20.0,
                                               counts_per_quantum, rng))]
     config = _config(folder, tag, f"[exposure]\ncalibration_dn_per_ugy = {QUANTA_PER_UGY * counts_per_quantum}\n"
                                   f"{extra_toml}")
@@ -87,7 +87,7 @@ def _run_exposures(folder: Path, transmission: np.ndarray, *, counts_per_quantum
 
 
 def test_ei_is_100_times_the_air_kerma_behind_the_object_and_doubles_with_it(tmp_path, rng):
-    transmission, inside = _analytic_object()
+    transmission, inside = analytic_object()
     k_ugy = 2.0
     expected = {k: 100.0 * k * float(np.median(transmission[inside])) for k in (k_ugy, 2 * k_ugy)}
     by_gain = {g: _run_exposures(tmp_path, transmission, counts_per_quantum=g, k_ugy=k_ugy, rng=rng)
@@ -104,23 +104,37 @@ def test_ei_is_100_times_the_air_kerma_behind_the_object_and_doubles_with_it(tmp
     assert by_gain[1.5][k_ugy]["exposure_index"] == pytest.approx(by_gain[4.0][k_ugy]["exposure_index"], rel=0.03)
 
 
-@pytest.fixture(scope="module")
-def leg_transmission(shared_data):
-    """The NEMA computed radiograph of a lower leg (MONOCHROME1, log-exposure values) as a transmission
-    map: 3 e-folds of attenuation over its 1-99.5 % range, collimator bands darker still."""
+def leg_transmission_map(data_dir: Path) -> np.ndarray:
+    """The NEMA computed radiograph of a lower leg (MONOCHROME1, log-exposure values) as a 400 x 400
+    transmission map: 3 e-folds of attenuation over its 1-99.5 % range, collimator bands darker still."""
     import cv2
     import pydicom
 
-    values = pydicom.dcmread(shared_data / "cr_dicom" / "RG3_UNCR.dcm").pixel_array.astype(np.float64)
+    values = pydicom.dcmread(data_dir / "cr_dicom" / "RG3_UNCR.dcm").pixel_array.astype(np.float64)
     values = cv2.resize(values, (400, 400), interpolation=cv2.INTER_AREA)
     lo, hi = np.percentile(values, [1, 99.5])
     return np.exp(-3.0 * np.clip((hi - values) / (hi - lo), 0.0, 1.2))
 
 
-def test_ei_doubles_with_air_kerma_on_real_anatomy_with_flat_field(tmp_path, rng, leg_transmission):
-    h, w = leg_transmission.shape
+def leg_shaft_median(transmission: np.ndarray) -> float:
+    """Median transmission of the leg's shaft: columns 140-240 of 400, between the direct-beam strips
+    along its whole length (chosen by eye on the image)."""
+    return float(np.median(transmission[:, 140:240]))
+
+
+def vignetting_of(shape) -> np.ndarray:
+    h, w = shape
     y, x = np.mgrid[0:h, 0:w]
-    vignetting = 1.0 - 0.15 * (((x - w / 2) / (w / 2)) ** 2 + ((y - h / 2) / (h / 2)) ** 2)
+    return 1.0 - 0.15 * (((x - w / 2) / (w / 2)) ** 2 + ((y - h / 2) / (h / 2)) ** 2)
+
+
+@pytest.fixture(scope="module")
+def leg_transmission(shared_data):
+    return leg_transmission_map(shared_data)
+
+
+def test_ei_doubles_with_air_kerma_on_real_anatomy_with_flat_field(tmp_path, rng, leg_transmission):
+    vignetting = vignetting_of(leg_transmission.shape)
     for gain in (1.0, 3.0):
         records = _run_exposures(tmp_path, leg_transmission, counts_per_quantum=gain, k_ugy=3.0, rng=rng,
                                  flat_illumination=vignetting)
@@ -129,11 +143,8 @@ def test_ei_doubles_with_air_kerma_on_real_anatomy_with_flat_field(tmp_path, rng
         assert high["exposure_index"] / low["exposure_index"] == pytest.approx(2.0, rel=0.05), (gain, records)
         # the anatomy (leg) lies between the direct-beam strips and the collimator bands: not the whole frame
         assert 0.1 < low["region_fraction"] < 0.5, low
-        # reference: the median transmission of the leg's shaft (columns 140-240 of 400, between the
-        # direct-beam strips along its whole length, chosen by eye) times the flat's mean level, which
-        # the flat field keeps
-        shaft = leg_transmission[:, 140:240]
-        reference = 100.0 * 3.0 * float(vignetting.mean()) * float(np.median(shaft))
+        # reference: the shaft's median transmission times the flat's mean level, which the flat field keeps
+        reference = 100.0 * 3.0 * float(vignetting.mean()) * leg_shaft_median(leg_transmission)
         assert low["exposure_index"] == pytest.approx(reference, rel=0.15), (low, reference)
 
 
@@ -143,8 +154,8 @@ def test_di_is_zero_at_the_target_and_dicom_carries_the_three_tags(tmp_path, rng
 
     # a flat exposure of 2.5 µGy measured over the whole field: EI = 250 = the target
     shape = (160, 200)
-    frame = write_tiff(tmp_path / "flat_exposure.tif", _expose(np.ones(shape), 2.5, 2.0, rng))
-    dark = write_tiff(tmp_path / "dark.tif", _dark(shape, rng))
+    frame = write_tiff(tmp_path / "flat_exposure.tif", expose(np.ones(shape), 2.5, 2.0, rng))
+    dark = write_tiff(tmp_path / "dark.tif", dark_frame(shape, rng))
     config = _config(tmp_path, "target", f"[exposure]\ncalibration_dn_per_ugy = {QUANTA_PER_UGY * 2.0}\n"
                                          "target_ei = 250.0\nregion = \"field\"\n")
     out = tmp_path / "out"
@@ -168,8 +179,8 @@ def test_di_is_zero_at_the_target_and_dicom_carries_the_three_tags(tmp_path, rng
 def test_uncalibrated_run_says_so_and_writes_no_exposure_tags(tmp_path, rng):
     import pydicom
 
-    transmission, _ = _analytic_object((120, 160))
-    frame = write_tiff(tmp_path / "shot.tif", _expose(transmission, 2.0, 2.0, rng))
+    transmission, _ = analytic_object((120, 160))
+    frame = write_tiff(tmp_path / "shot.tif", expose(transmission, 2.0, 2.0, rng))
     out = tmp_path / "out"
     _dslrxr("run", frame, "--dicom", "-o", out)
     for ext in ("tif", "png", "dcm"):
@@ -183,8 +194,8 @@ def test_uncalibrated_run_says_so_and_writes_no_exposure_tags(tmp_path, rng):
 def test_display_radiograph_records_why_no_ei(tmp_path, rng):
     import pydicom
 
-    transmission, _ = _analytic_object((120, 160))
-    frame = write_tiff(tmp_path / "display.tif", _expose(transmission, 2.0, 2.0, rng))
+    transmission, _ = analytic_object((120, 160))
+    frame = write_tiff(tmp_path / "display.tif", expose(transmission, 2.0, 2.0, rng))
     config = _config(tmp_path, "display", "[input]\ninput_kind = \"display\"\n"
                                           "[exposure]\ncalibration_dn_per_ugy = 600.0\n")
     out = tmp_path / "out"
