@@ -13,7 +13,6 @@ writes ``qc.json``, ``qc.csv`` and ``qc.html`` with :func:`napari_dslrxr.core.qc
 
 from __future__ import annotations
 
-import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,9 +21,9 @@ from magicgui.widgets import ComboBox, Container, FileEdit, PushButton, Select
 
 from ..core.errors import ParameterError
 from ..core.qc import DetectorQuality, QcParams, measure_detector_quality, write_qc_outputs
-from ._common import (JobPanel, guarded, notify_info, param_widget, readout_label, restore_defaults_button,
-                      run_in_worker)
-from .psf_edges import rectangles_to_rois, roi_layer_name
+from ._common import (JobPanel, ReportButtonsMixin, guarded, param_widget, readout_label, reset_choices,
+                      restore_defaults_button, run_in_worker, single_channel_layers)
+from .psf_edges import edge_roi_layer, rectangles_to_rois, roi_layer_name
 
 if TYPE_CHECKING:
     import napari
@@ -56,8 +55,11 @@ def _row(*widgets, labels: bool = False) -> Container:
     return row
 
 
-class QCWidget(Container):
+class QCWidget(ReportButtonsMixin, Container):
     """Measure a detector's MTF, NNPS and DQE from flat, dark and slanted-edge layers."""
+
+    REPORT_PAGE = "html"
+    REPORT_NAME = "QC report"
 
     def __init__(self, viewer: napari.viewer.Viewer):
         self._viewer = viewer
@@ -115,20 +117,13 @@ class QCWidget(Container):
     # -- layer choices -----------------------------------------------------------------------------
     def _single_channel_layers(self, *_args) -> list:
         """Image layers holding one 2-D channel (colour layers are not a detector's linear pixels)."""
-        from napari.layers import Image
-
-        return [(layer.name, layer) for layer in self._viewer.layers
-                if isinstance(layer, Image) and not layer.rgb and np.ndim(layer.data) == 2]
+        return single_channel_layers(self._viewer)
 
     def _single_channel_names(self, *_args) -> list[str]:
         return [name for name, _ in self._single_channel_layers()]
 
     def _reset_choices(self, *_args) -> None:
-        try:
-            for widget in (self._flats, self._darks, self._edge):
-                widget.reset_choices()
-        except RuntimeError:  # widget already deleted while napari tears down
-            pass
+        reset_choices(self._flats, self._darks, self._edge)
 
     def _edge_chosen(self, *_args) -> None:
         layer = self._edge.value
@@ -146,16 +141,7 @@ class QCWidget(Container):
         edge = self._edge.value
         if edge is None:
             raise ParameterError("choose the edge layer")
-        name = roi_layer_name(edge.name)
-        if name in self._viewer.layers:
-            shapes = self._viewer.layers[name]
-        else:
-            shapes = self._viewer.add_shapes(name=name, shape_type="rectangle", edge_color="yellow",
-                                             face_color="transparent", edge_width=2,
-                                             scale=tuple(edge.scale[-2:]), translate=tuple(edge.translate[-2:]))
-        self._viewer.layers.selection.active = shapes
-        shapes.mode = "add_rectangle"
-        return shapes
+        return edge_roi_layer(self._viewer, edge)
 
     def _frames(self, names: list[str], what: str) -> list[np.ndarray]:
         layers = self._viewer.layers
@@ -197,11 +183,6 @@ class QCWidget(Container):
     def cancel(self) -> None:
         """Stop the measurement at its next step (the Cancel button)."""
         self._job.cancel()
-
-    def _done(self) -> None:
-        self._run.enabled = True
-        if self._readout.value.endswith("..."):
-            self._readout.value = self._job.status.value
 
     def _show(self, result: DetectorQuality) -> None:
         self.result = result
@@ -267,19 +248,3 @@ class QCWidget(Container):
         return run_in_worker(write_qc_outputs, self.result, folder, input_names=list(self._input_names),
                              desc="QC report", on_returned=lambda paths: self._written(folder, paths),
                              on_finished=self._write_done, panel=self._job, readout=self._readout)
-
-    def _written(self, folder: Path, paths: dict[str, Path]) -> None:
-        self.report_paths = paths
-        self._open.enabled = True
-        notify_info(f"QC report written to {folder}")
-
-    def _write_done(self) -> None:
-        self._write.enabled = self.result is not None
-
-    @guarded("open QC report")
-    def open_report(self) -> bool:
-        """Open ``qc.html`` in the web browser."""
-        report = self.report_paths.get("html")
-        if report is None or not Path(report).is_file():
-            raise ParameterError("write the report first")
-        return webbrowser.open(Path(report).resolve().as_uri())
