@@ -71,7 +71,7 @@ def test_documented_defaults_match_the_parameter_classes():
 
     defaults = params_to_dict(PipelineParams())
     pages = {"impulse": "impulse.md", "flatfield": "flatfield.md", "region": "region.md",
-             "dynamic_range": "dynamic_range.md", "contrast": "contrast.md"}
+             "dynamic_range": "dynamic_range.md", "contrast": "contrast.md", "exposure": "exposure_index.md"}
     checked = 0
     for section, name in pages.items():
         rows = re.findall(r"^\| `(\w+)` \| ([^|]+) \|", (ALGORITHMS / name).read_text(encoding="utf-8"), re.M)

@@ -150,3 +150,56 @@ def make_sample_scene() -> list[tuple]:
                                   "thickness_layer": thickness_name,
                                   "hidden_effects": SCENE_HIDDEN_EFFECTS}}, "image"),
     ]
+
+
+# --------------------------------------------------------------------------- detector quality
+
+#: The detector the QC samples are made with: a pixel detector with 0.1 mm pixels that detects
+#: ``QC_QUANTA_PER_UGY`` X-ray quanta per pixel per µGy of RQA5, spreads each quantum's light
+#: over a Gaussian of ``QC_LIGHT_SPREAD_PX`` (sigma) and reads ``QC_COUNTS_PER_QUANTUM`` counts
+#: per quantum on an offset with read noise.
+QC_TRUTH = {"pixel_pitch_mm": 0.1, "beam": "RQA5", "air_kerma_ugy": 2.5, "quanta_per_ugy": 180.0,
+            "light_spread_sigma_px": 0.7, "counts_per_quantum": 2.0, "offset_counts": 100.0,
+            "read_noise_counts": 3.0, "edge_angle_deg": 2.5}
+QC_SHAPE = (512, 512)
+
+
+@lru_cache(maxsize=1)
+def _qc_frames() -> tuple:
+    from scipy import ndimage
+
+    t = QC_TRUTH
+    rng = np.random.default_rng(3)
+    quanta = t["quanta_per_ugy"] * t["air_kerma_ugy"]
+
+    def detect(transmission: np.ndarray) -> np.ndarray:
+        detected = rng.poisson(quanta * transmission).astype(np.float32)
+        light = ndimage.gaussian_filter(detected, t["light_spread_sigma_px"], mode="reflect")
+        counts = t["counts_per_quantum"] * light + t["offset_counts"] + rng.normal(0, t["read_noise_counts"], light.shape)
+        return np.clip(np.round(counts), 0, 65535).astype(np.uint16)
+
+    h, w = QC_SHAPE
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    angle = np.deg2rad(t["edge_angle_deg"])
+    # signed distance (px) from a near-vertical edge through the centre; the pixel's open share
+    # is its area right of the edge (a box pixel crossed by a straight line)
+    distance = (cols - w / 2) * np.cos(angle) - (rows - h / 2) * np.sin(angle)
+    edge_transmission = 0.03 + 0.97 * np.clip(distance + 0.5, 0.0, 1.0)
+    flats = [detect(np.ones(QC_SHAPE)) for _ in range(2)]
+    dark = np.clip(np.round(t["offset_counts"] + rng.normal(0, t["read_noise_counts"], QC_SHAPE)), 0, None)
+    return flats, dark.astype(np.uint16), detect(edge_transmission)
+
+
+def make_sample_qc_set() -> list[tuple]:
+    """Detector-quality frames: two flats and a dark at 2.5 µGy RQA5 and a slanted edge (2.5°).
+
+    A synthetic 0.1 mm pixel detector (Poisson quanta, Gaussian light spread after detection,
+    read noise: :data:`QC_TRUTH` in each layer's metadata) for the QC widget.
+    """
+    flats, dark, edge = _qc_frames()
+    meta = {"format": "sample", "pixel_pitch_mm": QC_TRUTH["pixel_pitch_mm"], "detector_truth": dict(QC_TRUTH)}
+    layers = [(f, {"name": f"QC flat {i + 1}", "colormap": "gray", "metadata": {**meta, "sample": "qc flat"}}, "image")
+              for i, f in enumerate(flats)]
+    layers.append((dark, {"name": "QC dark", "colormap": "gray", "metadata": {**meta, "sample": "qc dark"}}, "image"))
+    layers.append((edge, {"name": "QC edge", "colormap": "gray", "metadata": {**meta, "sample": "qc edge"}}, "image"))
+    return layers

@@ -32,6 +32,7 @@ from napari_dslrxr import _sample_data as samples
 from napari_dslrxr._cli.view import plugin_widget_names, populate_viewer
 from napari_dslrxr._widgets import contrast as contrast_module
 from napari_dslrxr._widgets import deconvolution as deconvolution_module
+from napari_dslrxr._widgets import qc as qc_module
 from napari_dslrxr._widgets._common import EventLoopMonitor, viewer_camera
 from napari_dslrxr.core.psf.edge_images import MIN_ROI_PX
 from napari_dslrxr.core.errors import WorkCancelled
@@ -45,7 +46,7 @@ pytestmark = pytest.mark.gui
 GAPS: dict[tuple[str, str], dict[str, float]] = {}
 #: The samples every test opens (the set holds radiograph, flat and dark); the first test opens
 #: the three single ones too, so every sample command of the manifest is used.
-SAMPLE_KEYS = ("dslr_set", "edges", "scene")
+SAMPLE_KEYS = ("dslr_set", "edges", "scene", "qc_set")
 SINGLE_SAMPLE_KEYS = ("radiograph", "flat", "dark")
 DOCS_SHOTS = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
 
@@ -298,7 +299,7 @@ def test_dslrxr_view_docks_every_widget_and_no_preview_appears(plugin, shots):
     manifest = PluginManager.instance().get_manifest("napari-dslrxr")
     keys = {sample.key for sample in manifest.contributions.sample_data}
     assert keys == set(SAMPLE_KEYS) | set(SINGLE_SAMPLE_KEYS)
-    assert set(plugin.widgets) == set(plugin_widget_names()) and len(plugin.widgets) == 7
+    assert set(plugin.widgets) == set(plugin_widget_names()) and len(plugin.widgets) == 8
     plugin.qtbot.wait(300)  # longer than any preview debounce
     names = [layer.name for layer in plugin.viewer.layers]
     assert not [n for n in names if "preview" in n or "contrast" in n], names
@@ -519,6 +520,61 @@ def test_diagnosis_buttons(plugin, tmp_path, monkeypatch, shots):
     plugin.check_all_clicked(name)
     plugin.snap(shots, "diagnosis", name, ["residual z 4x4 (base model)", "residual z 4x4 (final model)",
                                            "mismatch regions", "residual map labels"])
+
+
+def test_detector_quality_buttons(plugin, tmp_path, monkeypatch, shots):
+    name, widget = "Detector quality", plugin.widgets["Detector quality"]
+    viewer = plugin.viewer
+    offered = widget._flats.choices
+    assert "QC flat 1" in offered and "DSLR radiograph" not in offered  # colour layers are not a detector channel
+    plugin.click(name, "Measure MTF, NNPS, DQE", refused="choose at least one flat layer")
+    widget._flats.value = ["QC flat 1", "QC flat 2"]
+    widget._darks.value = ["QC dark"]
+    widget._edge.value = viewer.layers["QC edge"]
+    assert widget._pitch.value == 0.1 and widget._kerma.value == 2.5  # from the sample's metadata
+    widget._beam.value = "RQA9"
+    plugin.click(name, "Restore defaults")
+    assert widget._beam.value == "RQA5" and widget._kerma.value == 2.5
+    # The edge inside a rectangle of its ROI layer, drawn on the layer the button makes.
+    plugin.click(name, "Draw edge ROI")
+    shapes = viewer.layers["QC edge ROIs"]
+    assert viewer.layers.selection.active is shapes and shapes.mode == "add_rectangle"
+    shapes.add_rectangles([rectangle(96, 160, 416, 352)])
+    real = qc_module.measure_detector_quality
+    release = gate(qc_module, "measure_detector_quality", monkeypatch)
+    cancel_running(plugin, name, "Measure MTF, NNPS, DQE", "Cancel", release, "no such layer")
+    assert widget.result is None
+    monkeypatch.setattr(qc_module, "measure_detector_quality", real)  # (undo() would also leave tmp_path)
+    plugin.click(name, "Measure MTF, NNPS, DQE", timeout_ms=120_000)
+    result = widget.result
+    assert result.edges[0].direction == "horizontal" and result.edges[0].angle_deg == pytest.approx(2.5, abs=0.2)
+    assert result.edge_rois == [[96, 160, 416, 352]]
+    # The sample's truth: Gaussian light spread (sigma 0.7 px) after detection, 0.1 mm pixels
+    truth = samples.QC_TRUTH
+    i = int(np.abs(result.frequency_cy_per_mm - 2.5).argmin())
+    f_px = result.frequency_cy_per_mm[i] * truth["pixel_pitch_mm"]
+    mtf_truth = np.exp(-2 * (np.pi * truth["light_spread_sigma_px"] * f_px) ** 2) * np.sinc(f_px)
+    assert result.mtf[i] == pytest.approx(mtf_truth, abs=0.03)
+    # DQE of Poisson detection followed by a deterministic spread: eta sinc^2 (read noise: 1-7 % less)
+    eta = truth["quanta_per_ugy"] / (29653.0 * truth["pixel_pitch_mm"] ** 2)
+    assert result.dqe[i] == pytest.approx(eta * np.sinc(f_px) ** 2, rel=0.15)
+    assert "from flat layer 'QC flat 1'; flat layer 'QC flat 2'; dark layer 'QC dark'" in widget._readout.value
+    assert "2.5 c/mm: MTF" in widget._readout.value and "DQE" in widget._readout.value
+    left, right = widget._figure.axes
+    assert {"MTF horizontal", "DQE horizontal"} <= {line.get_label() for line in left.lines}
+    assert "horizontal" in {line.get_label() for line in right.lines}  # the NNPS
+    answer_file_dialog(widget._report_dir, "qc_report")
+    plugin.click(name, "Choose directory")
+    plugin.click(name, "Write report")
+    written = {p.name for p in (tmp_path / "qc_report").iterdir()}
+    assert {"qc.json", "qc.csv", "qc.html"} <= written
+    assert "flat layer 'QC flat 1'" in unescape((tmp_path / "qc_report" / "qc.html").read_text(encoding="utf-8"))
+    opened = []
+    monkeypatch.setattr(webbrowser, "open", lambda url: opened.append(url) or True)
+    plugin.click(name, "Open report")
+    assert opened == [(tmp_path / "qc_report" / "qc.html").resolve().as_uri()]
+    plugin.check_all_clicked(name)
+    plugin.snap(shots, "qc", name, ["QC edge", "QC edge ROIs"])
 
 
 def test_parameter_file_buttons(plugin, tmp_path):

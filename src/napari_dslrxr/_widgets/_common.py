@@ -14,6 +14,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -387,7 +388,65 @@ class LivePreviewMixin:
             self.update_preview()
 
 
+class ReportButtonsMixin:
+    """The run, "Write report" and "Open report" buttons of a measuring widget.
+
+    The widget provides ``_run``, ``_write`` and ``_open`` (push buttons), ``_readout``,
+    ``_job`` (:class:`JobPanel`), ``result`` (None until a run showed one) and
+    ``report_paths`` (the report writer's paths by name), and sets :attr:`REPORT_PAGE` (the
+    key of the page to open) and :attr:`REPORT_NAME` (for the messages).
+    """
+
+    REPORT_PAGE = "report"
+    REPORT_NAME = "report"
+
+    def _done(self) -> None:
+        """The run's job is over (any outcome): the run button again, and the read-out not
+        left at "...ing...". """
+        self._run.enabled = True
+        if self._readout.value.endswith("..."):
+            self._readout.value = self._job.status.value
+
+    def _written(self, folder: Path, paths: dict) -> None:
+        self.report_paths = paths
+        self._open.enabled = True
+        notify_info(f"{self.REPORT_NAME} written to {folder}")
+
+    def _write_done(self) -> None:
+        self._write.enabled = self.result is not None
+
+    @guarded("open report")
+    def open_report(self) -> bool:
+        """Open the report's page in the web browser."""
+        import webbrowser
+
+        page = self.report_paths.get(self.REPORT_PAGE)
+        if page is None or not Path(page).is_file():
+            from ..core.errors import ParameterError
+
+            raise ParameterError("write the report first")
+        return webbrowser.open(Path(page).resolve().as_uri())
+
+
 # --------------------------------------------------------------------------- layers
+
+
+def single_channel_layers(viewer: napari.Viewer) -> list[tuple[str, Any]]:
+    """``(name, layer)`` of the image layers holding one 2-D channel (a detector's linear
+    pixels; colour layers are left out), for a layer choice."""
+    from napari.layers import Image
+
+    return [(layer.name, layer) for layer in viewer.layers
+            if isinstance(layer, Image) and not layer.rgb and np.ndim(layer.data) == 2]
+
+
+def reset_choices(*widgets: Any) -> None:
+    """Refresh the layer choices of ``widgets`` (a layer was added or removed)."""
+    try:
+        for widget in widgets:
+            widget.reset_choices()
+    except RuntimeError:  # widget already deleted while napari tears down
+        pass
 
 
 def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: str = "image",

@@ -15,7 +15,6 @@ read-out. "Write report" writes ``report.html`` and the JSON/TIFF files with
 
 from __future__ import annotations
 
-import webbrowser
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -27,8 +26,8 @@ from ..core.diagnosis import DiagnosisOptions, DiagnosisResult, diagnose_scene, 
 from ..core.errors import ParameterError
 from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
-from ._common import (JobPanel, guarded, notify_info, param_widget, readout_label, remove_layer,
-                      restore_defaults_button, run_in_worker, show_layer)
+from ._common import (JobPanel, ReportButtonsMixin, guarded, param_widget, readout_label, remove_layer,
+                      reset_choices, restore_defaults_button, run_in_worker, show_layer, single_channel_layers)
 
 if TYPE_CHECKING:
     import napari
@@ -69,8 +68,11 @@ def summary_text(result: DiagnosisResult) -> str:
     return "\n".join(lines)
 
 
-class DiagnosisWidget(Container):
+class DiagnosisWidget(ReportButtonsMixin, Container):
     """Run the mismatch diagnosis on a recording layer and a scene; show residuals and effects."""
+
+    REPORT_PAGE = "report"
+    REPORT_NAME = "diagnosis report"
 
     def __init__(self, viewer: napari.viewer.Viewer):
         self._viewer = viewer
@@ -116,16 +118,10 @@ class DiagnosisWidget(Container):
 
     def _single_channel_layers(self, *_args) -> list:
         """Image layers holding one 2-D channel (the diagnosis' recording)."""
-        from napari.layers import Image
-
-        return [(layer.name, layer) for layer in self._viewer.layers
-                if isinstance(layer, Image) and not layer.rgb and np.ndim(layer.data) == 2]
+        return single_channel_layers(self._viewer)
 
     def _reset_recording_choices(self, *_args) -> None:
-        try:
-            self._recording.reset_choices()
-        except RuntimeError:  # widget already deleted while napari tears down
-            pass
+        reset_choices(self._recording)
 
     def _recording_chosen(self, *_args) -> None:
         layer = self._recording.value
@@ -176,11 +172,6 @@ class DiagnosisWidget(Container):
     def cancel(self) -> None:
         """Stop the diagnosis at its next step (the Cancel button)."""
         self._job.cancel()
-
-    def _done(self) -> None:
-        self._run.enabled = True
-        if self._readout.value.endswith("..."):
-            self._readout.value = self._job.status.value
 
     def _show(self, layer, result: DiagnosisResult) -> None:
         self.result = result
@@ -237,19 +228,3 @@ class DiagnosisWidget(Container):
                              parameters={"max_terms": int(self._max_terms.value)}, desc="diagnosis report",
                              on_returned=lambda paths: self._written(folder, paths), on_finished=self._write_done,
                              panel=self._job, readout=self._readout)
-
-    def _written(self, folder: Path, paths: dict[str, Path]) -> None:
-        self.report_paths = paths
-        self._open.enabled = True
-        notify_info(f"diagnosis report written to {folder}")
-
-    def _write_done(self) -> None:
-        self._write.enabled = self.result is not None
-
-    @guarded("open report")
-    def open_report(self) -> bool:
-        """Open ``report.html`` in the web browser."""
-        report = self.report_paths.get("report")
-        if report is None or not Path(report).is_file():
-            raise ParameterError("write the report first")
-        return webbrowser.open(Path(report).resolve().as_uri())

@@ -64,6 +64,22 @@ def rectangles_to_rois(shapes: napari.layers.Shapes, image: napari.layers.Image)
     return rois
 
 
+def edge_roi_layer(viewer: napari.Viewer, image: napari.layers.Image, on_new=None) -> napari.layers.Shapes:
+    """The Shapes layer ``"<image> ROIs"`` over ``image`` (created, and passed to ``on_new``,
+    when there is none), made active in rectangle mode for the user to draw."""
+    name = roi_layer_name(image.name)
+    if name in viewer.layers:
+        shapes = viewer.layers[name]
+    else:
+        shapes = viewer.add_shapes(name=name, shape_type="rectangle", edge_color="yellow", face_color="transparent",
+                                   edge_width=2, scale=tuple(image.scale[-2:]), translate=tuple(image.translate[-2:]))
+        if on_new is not None:
+            on_new(shapes)
+    viewer.layers.selection.active = shapes
+    shapes.mode = "add_rectangle"
+    return shapes
+
+
 def fit_summary(model: PSFModel) -> str:
     """The read-out of a fit: what was fitted, with uncertainties, and what was not."""
     report = model.fit_report
@@ -193,17 +209,8 @@ class PSFEdgeWidget(Container):
         image = self._image.value
         if image is None:
             raise ParameterError("choose an edge image layer")
-        name = roi_layer_name(image.name)
-        if name in self._viewer.layers:
-            shapes = self._viewer.layers[name]
-        else:
-            shapes = self._viewer.add_shapes(name=name, shape_type="rectangle", edge_color="yellow",
-                                             face_color="transparent", edge_width=2,
-                                             scale=tuple(image.scale[-2:]), translate=tuple(image.translate[-2:]))
-            shapes.events.data.connect(self._refresh_status)
-        self._viewer.layers.selection.active = shapes
-        shapes.mode = "add_rectangle"
-        return shapes
+        return edge_roi_layer(self._viewer, image, on_new=lambda shapes: shapes.events.data.connect(
+            self._refresh_status))
 
     def collect_edges(self) -> list[EdgeImage]:
         """One :class:`EdgeImage` per rectangle over every image that has an ROI layer."""

@@ -2,7 +2,7 @@
 
 :class:`PipelineParams` holds one dataclass per stage; the TOML file has one table per stage
 (``[input]``, ``[impulse]``, ``[flatfield]``, ``[region]``, ``[deblur]``, ``[dynamic_range]``,
-``[contrast]``, ``[output]``). The command line (``dslrxr run -c params.toml``) and the napari
+``[contrast]``, ``[output]``, ``[exposure]``). The command line (``dslrxr run -c params.toml``) and the napari
 widgets read and write the same file. Missing keys take their defaults; unknown keys, wrong
 types and out-of-range values raise :class:`~.errors.ParameterError` with a one-line message
 naming the key (and, for a misspelt key, the closest valid name).
@@ -26,6 +26,7 @@ from .param_fields import describe_range, field_info, validate_fields
 from .stages.contrast import ContrastParams
 from .stages.deconvolution import DeconvolutionParams
 from .stages.dynamic_range import DynamicRangeParams
+from .stages.exposure_index import ExposureParams
 from .stages.flatfield import FlatFieldParams
 from .stages.region import RegionParams
 
@@ -136,6 +137,7 @@ class PipelineParams:
     dynamic_range: DynamicRangeParams = field(default_factory=DynamicRangeParams)
     contrast: ContrastParams = field(default_factory=ContrastParams)
     output: OutputParams = field(default_factory=OutputParams)
+    exposure: ExposureParams = field(default_factory=ExposureParams)
     batch: BatchParams = field(default_factory=BatchParams)
 
 
@@ -151,6 +153,7 @@ SECTION_HELP = {
     "dynamic_range": "(v) dynamic-range / latitude reduction in the log domain and the display curve",
     "contrast": "(vi) multiscale contrast enhancement (MUSICA-style Laplacian pyramid)",
     "output": "files written by the run",
+    "exposure": "exposure index EI and deviation index DI (IEC 62494-1) of camera frames, once calibrated",
     "batch": "how dslrxr run spreads a batch: process pool or dask.distributed cluster (never changes outputs)",
     "psf_fit": "dslrxr psf fit: the joint edge fit (the edges themselves are listed in the edge configuration)",
     "diagnose": "dslrxr diagnose: which physics terms the diagnosis may add to the base model",
@@ -307,11 +310,12 @@ def _field_comment(cls: type, name: str) -> str:
 
 
 def params_to_toml(params: PipelineParams | None = None, *, comments: bool = True,
-                   run_sections: bool = True, commands: dict | None = None) -> str:
+                   run_sections: bool = True, commands: dict | None = None, omit: tuple[str, ...] = ()) -> str:
     """The TOML text of ``params`` (default: the defaults), with a comment above every key.
 
-    ``run_sections=False`` leaves out :data:`RUN_ONLY_SECTIONS`; ``commands`` adds the command
-    sections (``[psf_fit]``, ``[diagnose]``, ``[qc]``) after the pipeline's.
+    ``run_sections=False`` leaves out :data:`RUN_ONLY_SECTIONS`; ``omit`` leaves out the named
+    sections; ``commands`` adds the command sections (``[psf_fit]``, ``[diagnose]``, ``[qc]``)
+    after the pipeline's.
     """
     params = params or PipelineParams()
     # The first line is part of the text that seeds the run's DICOM UIDs: keep it as it is.
@@ -321,7 +325,7 @@ def params_to_toml(params: PipelineParams | None = None, *, comments: bool = Tru
         lines.insert(1, "# The same file sets dslrxr denoise ([impulse]), deconvolve ([deblur]), "
                         "psf fit ([psf_fit]), diagnose ([diagnose]) and qc ([qc]): -c this_file.toml.")
     sections = [(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)
-                if run_sections or f.name not in RUN_ONLY_SECTIONS]
+                if (run_sections or f.name not in RUN_ONLY_SECTIONS) and f.name not in omit]
     sections += list((commands or {}).items())
     for name, section in sections:
         if comments:

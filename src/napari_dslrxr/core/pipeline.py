@@ -33,6 +33,7 @@ from .errors import InputError, OutputError, ParameterError
 from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
 from .params import PipelineParams, params_to_dict, params_to_toml, validate_params
 from .stages.collimation import detect_collimation
+from .stages.exposure_index import dicom_exposure_tags, exposure_index_record, not_linear_record
 from .stages.region import Region, direct_exposure_level, polygon_mask, rectify, voi_window
 from .stages.screen import detect_screen
 
@@ -340,6 +341,10 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
         mask, region = _collimated_field(attenuation, mask, region, params, results)
         sub_mask = mask[::step, ::step]
     sub_att = attenuation[::step, ::step]
+    # exposure index: on the linear signal (the logarithm undone on the subsample), before any display mapping
+    linear_sample = np.exp(-sub_att if params.output.polarity == "bone_white" else sub_att)
+    results["exposure_index"] = exposure_index_record(linear_sample, sub_mask if sub_mask.any() else None,
+                                                      params.exposure)
     lo, hi = _scale_to_voi_window(attenuation, sub_att[sub_mask] if sub_mask.any() else sub_att, params)
     results["voi_window"] = [lo, hi]
     if keep_intermediates:
@@ -586,7 +591,9 @@ def run_display_pipeline(image: np.ndarray, *, params: PipelineParams | None = N
     results = {"region": {"kind": "collimated field" if field is not None else "whole frame (no collimator found)",
                           "polygon_xy": region.polygon_xy.round(2).tolist(), "detected": field is not None,
                           "area_fraction": float(region.mask.mean())},
-               "voi_window": [lo, hi]}
+               "voi_window": [lo, hi],
+               "exposure_index": not_linear_record("display radiograph: its values are display-mapped, not linear "
+                                                   "in air kerma, so no detector calibration applies")}
     if keep_intermediates:
         inter["attenuation"] = x.copy()
     timings["region"] = clock() - t0
@@ -652,8 +659,10 @@ def run_identity(input_files: Sequence[str | os.PathLike], params: PipelineParam
     digest = hashlib.sha256()
     for path in input_files:
         digest.update(file_sha256(path).encode())
-    # how the batch was spread (the [batch] section) never changes an output
-    digest.update(params_to_toml(params, comments=False, run_sections=False).encode())
+    # how the batch was spread (the [batch] section) never changes an output; nor does the
+    # [exposure] section of an uncalibrated detector (the files of earlier versions keep their UIDs)
+    omit = () if params.exposure.calibrated else ("exposure",)
+    digest.update(params_to_toml(params, comments=False, run_sections=False, omit=omit).encode())
     digest.update(extra.encode())
     return digest.hexdigest()
 
@@ -706,7 +715,8 @@ def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Seq
 
             write_dicom_dx(path, result.display_uint16(), pixel_spacing_mm=spacing,
                            uid_seed=uid_seed or run_identity(inputs, params), patient=patient,
-                           series_description="napari-dslrxr processed radiograph", inputs=inputs)
+                           series_description="napari-dslrxr processed radiograph", inputs=inputs,
+                           attributes=dicom_exposure_tags(result.results.get("exposure_index")))
         else:  # pragma: no cover
             raise OutputError(f"{path}: unknown output kind {kind!r}")
         write_sidecar(path, stage="run", parameters=params_to_dict(params, run_sections=False), inputs=inputs,

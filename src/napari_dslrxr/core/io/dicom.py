@@ -41,7 +41,7 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
                    pixel_spacing_mm: float | tuple[float, float] | None = None,
                    window: tuple[float, float] | None = None, patient: Mapping[str, str] | None = None,
                    series_description: str = "", inputs: Iterable[str | os.PathLike] = (),
-                   linear: bool = False) -> Path:
+                   linear: bool = False, attributes: Mapping[str, str] | None = None) -> Path:
     """Write a uint16 grey radiograph as a DICOM DX (For Presentation) file.
 
     Parameters
@@ -65,6 +65,8 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
         The values are linear in light (camera counts): PixelIntensityRelationship ``LIN``
         instead of ``LOG``, so a reader takes the file for a camera frame, not a display
         radiograph.
+    attributes : mapping, optional
+        Further attributes by keyword (e.g. ``ExposureIndex``), as their DICOM strings.
 
     Returns
     -------
@@ -148,6 +150,8 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
         spacing = [f"{float(sp[0]):.6g}", f"{float(sp[1]):.6g}"]
         ds.ImagerPixelSpacing = spacing
         ds.PixelSpacing = spacing
+    for keyword, value in (attributes or {}).items():
+        setattr(ds, keyword, value)
     ds.PixelData = arr.astype("<u2").tobytes()
 
     def _write(tmp: str) -> None:
