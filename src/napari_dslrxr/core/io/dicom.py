@@ -78,7 +78,7 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
 
-    from .image_files import atomic_write
+    from .writers import atomic_write
 
     arr = np.ascontiguousarray(image)
     if arr.dtype != np.uint16 or arr.ndim != 2:
