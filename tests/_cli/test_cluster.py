@@ -161,7 +161,7 @@ def test_references_are_prepared_once_and_scattered(tmp_path, small_batch, monke
     from distributed import LocalCluster
 
     from napari_dslrxr._cli import cluster as cli_cluster
-    from napari_dslrxr.core import pipeline as core_pipeline
+    from napari_dslrxr.core import files as core_files
     from napari_dslrxr.core import psf as core_psf
     from napari_dslrxr.core.psf import PSFModel, save_psf
 
@@ -169,8 +169,8 @@ def test_references_are_prepared_once_and_scattered(tmp_path, small_batch, monke
                             detector_fwhm_core_mm=0.15, detector_fwhm_tail_mm=0.4,
                             detector_weight_core=0.8, shape_power=1.5), tmp_path / "psf.json")
     frame_reads, psf_reads = [], []
-    real_load_frames, real_load_psf = core_pipeline.load_frames, core_psf.load_psf
-    monkeypatch.setattr(core_pipeline, "load_frames", lambda paths: frame_reads.append(list(paths)) or real_load_frames(paths))
+    real_load_frames, real_load_psf = core_files.load_frames, core_psf.load_psf
+    monkeypatch.setattr(core_files, "load_frames", lambda paths: frame_reads.append(list(paths)) or real_load_frames(paths))
     monkeypatch.setattr(core_psf, "load_psf", lambda path: psf_reads.append(path) or real_load_psf(path))
     monkeypatch.setattr(cli_cluster, "_worker_references", {})
     shots = small_batch["shots"]

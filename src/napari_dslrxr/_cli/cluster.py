@@ -1,6 +1,6 @@
 """``dslrxr run --scheduler``: the batch as one dask.distributed task per input file.
 
-The per-file work is :func:`napari_dslrxr.core.pipeline.run_file`, exactly as with ``--jobs``
+The per-file work is :func:`napari_dslrxr.core.files.run_file`, exactly as with ``--jobs``
 (same atomic writes and sidecars, so the outputs have the same bytes). The flat/dark reference
 and the PSF kernel are prepared once here and scattered to every worker, which looks them up
 in its ``reference_cache`` instead of reading the reference files again.

@@ -70,8 +70,8 @@ def register(app: typer.Typer) -> None:
         from ..core.stages import deconvolution as dc
         from ..core.stages.regularisation import choose_regularisation
         from ..core.errors import ParameterError
-        from ..core.io import read_image, write_tiff
-        from ..core.io.provenance import write_sidecar
+        from ..core.files import write_output
+        from ..core.io import read_image
         from ..core.psf import load_psf
         from .common import ensure_parent
 
@@ -119,11 +119,11 @@ def register(app: typer.Typer) -> None:
         ensure_parent(output)
         description = (f"dslrxr deconvolve: method={method} reg={reg_used:.6g}"
                        f"{' (auto)' if reg_value == 'auto' else ''}; float32, linear, input units")
-        write_tiff(output, result.astype(np.float32, copy=False), description=description, inputs=inputs)
-        write_sidecar(output, stage="deconvolve", parameters=parameters, inputs=inputs,
-                      timings_s={"read": t_read, "auto_reg": t_auto, "deconvolve": t_deconv},
-                      results={"reg_used": reg_used, "reg_was_auto": reg_value == "auto",
-                               **({"auto": auto.as_dict()} if auto is not None else {}),
-                               "kernel_shape": list(kern.shape), "output_dtype": "float32"})
+        write_output(output, result.astype(np.float32, copy=False), description=description, stage="deconvolve",
+                     parameters=parameters, inputs=inputs,
+                     timings_s={"read": t_read, "auto_reg": t_auto, "deconvolve": t_deconv},
+                     results={"reg_used": reg_used, "reg_was_auto": reg_value == "auto",
+                              **({"auto": auto.as_dict()} if auto is not None else {}),
+                              "kernel_shape": list(kern.shape), "output_dtype": "float32"})
         typer.echo(f"{output}: {method} deconvolution, reg {reg_used:.4g}"
                    f"{' (auto)' if reg_value == 'auto' else ''}, kernel {kern.shape[0]}x{kern.shape[1]}")

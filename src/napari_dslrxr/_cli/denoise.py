@@ -60,6 +60,7 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
                  min_contrast: float | None = None) -> dict:
     """Run impulse removal on one file and write the outputs; return the sidecar results."""
     import dataclasses
+    from functools import partial
 
     import numpy as np
 
@@ -70,8 +71,8 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
         remove_impulses,
         remove_impulses_cfa,
     )
+    from ..core.files import write_output
     from ..core.io import check_not_an_input, read_image, write_tiff
-    from ..core.io.provenance import write_sidecar
     from .common import ensure_parent
 
     params = impulse_params(config, passes=passes, space=space, spots=spots, window_px=window_px,
@@ -103,14 +104,14 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
     parameters = {**dataclasses.asdict(params), "space": used_space, "space_requested": space}
     timings = {"read": t_read, "denoise": t_denoise}
     ensure_parent(output)
-    write_tiff(output, image, inputs=[input_path])
-    write_sidecar(output, stage="denoise", parameters=parameters, inputs=[input_path],
-                  timings_s=timings, results=results)
+    write_output(output, image, stage="denoise", parameters=parameters, inputs=[input_path],
+                 timings_s=timings, results=results)
     if mask_out is not None:
         ensure_parent(mask_out)
-        write_tiff(mask_out, np.where(mask, 255, 0).astype(np.uint8), inputs=[input_path, output])
-        write_sidecar(mask_out, stage="denoise-mask", parameters=parameters, inputs=[input_path],
-                      timings_s=timings, results=results)
+        # the mask must not overwrite the cleaned output either; its sidecar names the input only
+        write_mask = partial(write_tiff, data=np.where(mask, 255, 0).astype(np.uint8), inputs=[input_path, output])
+        write_output(mask_out, write_mask, stage="denoise-mask", parameters=parameters, inputs=[input_path],
+                     timings_s=timings, results=results)
     return results
 
 

@@ -32,7 +32,7 @@ def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, b
     ``reference_cache`` (sequential runs) keeps the prepared flat reference between files.
     """
     from ..core.params import params_from_dict
-    from ..core.pipeline import run_file
+    from ..core.files import run_file
 
     t0 = time.perf_counter()
     try:
@@ -109,7 +109,7 @@ def register(app: typer.Typer) -> None:
         checksums, parameters and version; otherwise it is processed again.
         """
         from ..core.params import PipelineParams, load_params, params_to_dict, validate_params
-        from ..core.pipeline import prepare_batch_references
+        from ..core.files import prepare_batch_references
         from ..core.rerun import check_finished
 
         params = load_params(config) if config is not None else PipelineParams()

@@ -32,7 +32,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Simulate a recording of the scene through the imaging chain."""
         from ..core import io
-        from ..core.io import provenance
+        from ..core.files import write_output
         from ..core.simulation import simulator
 
         t0 = time.perf_counter()
@@ -41,11 +41,10 @@ def register(app: typer.Typer) -> None:
         inputs = [scene] + ([sc.thickness_path] if sc.thickness_path else [])
         io.check_not_an_input(output, inputs)
         recording, truth = simulator.simulate_recording(sc, effects=effects, seed=seed)
-        io.write_tiff(output, recording, description="dslrxr simulate", inputs=inputs)
-        provenance.write_sidecar(output, stage="simulate",
-                                 parameters={"scene": str(scene), "effects": truth["effects"], "seed": seed},
-                                 inputs=inputs, timings_s={"simulate": time.perf_counter() - t0},
-                                 results={"pulse_pixels": int(truth["pulse_mask"].sum())})
+        write_output(output, recording, description="dslrxr simulate", stage="simulate",
+                     parameters={"scene": str(scene), "effects": truth["effects"], "seed": seed},
+                     inputs=inputs, timings_s={"simulate": time.perf_counter() - t0},
+                     results={"pulse_pixels": int(truth["pulse_mask"].sum())})
         typer.echo(f"wrote {output} ({recording.shape[0]}x{recording.shape[1]}, "
                    f"effects: {', '.join(truth['effects']) or 'none'})")
 

@@ -9,7 +9,7 @@ the display stages: collimation, value-of-interest window, dynamic range and con
 one through the other's path gives an inverted image or blanks anatomy.
 
 :func:`decide_input_kind` is the one rule, used by ``dslrxr run``
-(:func:`napari_dslrxr.core.pipeline.run_file`), the napari reader (which stores the decision
+(:func:`napari_dslrxr.core.files.run_file`), the napari reader (which stores the decision
 in the layer's metadata) and the contrast widget:
 
 1. camera raw (CR2, NEF, DNG...) is a camera frame, always;
