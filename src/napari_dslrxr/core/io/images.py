@@ -286,6 +286,25 @@ def last_decoder_line(chatter: list[str]) -> str:
     return line.split(": ", 1)[1] if ": " in line else line
 
 
+
+@contextlib.contextmanager
+def decoder_errors(path: Path, damaged: str, describe=None):
+    """Turn whatever a decoder raises into one :class:`InputError` naming ``path``.
+
+    An :class:`InputError` raised inside passes unchanged; running out of memory says so; any
+    other exception becomes ``"<damaged> (<detail>)"``, the detail being ``describe(exc)`` when
+    given, else the exception's own one-line text.
+    """
+    try:
+        yield
+    except InputError:
+        raise
+    except MemoryError:
+        raise InputError(path, "too large to decode in memory") from None
+    except Exception as exc:  # decoders raise many types for damaged files
+        detail = describe(exc) if describe is not None else exc
+        raise InputError(path, f"{damaged} ({short_message(detail)})") from None
+
 # --------------------------------------------------------------------------- file headers
 
 

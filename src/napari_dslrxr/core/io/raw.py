@@ -20,6 +20,7 @@ from .images import (
     RawFrame,
     check_declared_size,
     check_tiff_structure,
+    decoder_errors,
     last_decoder_line,
     max_pixels_limit,
     quiet_decoder,
@@ -69,7 +70,14 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
         except Exception:  # noqa: BLE001 - a maker's variant tifffile cannot parse; LibRaw decides
             pass
     chatter: list[str] = []
-    try:
+
+    def describe(exc: Exception) -> str:
+        detail = last_decoder_line(chatter) or short_message(exc)
+        # LibRaw's own allocation guard refuses sizes derived from damaged fields
+        return "damaged size fields (the decoder refused to allocate for them)" if "memory" in detail.lower() \
+            else detail
+
+    with decoder_errors(path, "unreadable camera raw file", describe):  # rawpy.LibRawError and friends
         with quiet_decoder() as chatter, rawpy.imread(str(path)) as raw:
             sizes = raw.sizes
             check_declared_size(path, sizes.raw_height, sizes.raw_width, 1, 2, limit)
@@ -90,16 +98,6 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
                 h2, w2 = mosaic.shape[0] // 2, mosaic.shape[1] // 2
                 planes, offsets, names, black = _split_cfa(path, mosaic[: 2 * h2, : 2 * w2], pattern, desc, black)
             rgb = postprocess_linear(raw)
-    except InputError:
-        raise
-    except MemoryError:
-        raise InputError(path, "too large to decode in memory") from None
-    except Exception as exc:  # rawpy.LibRawError and friends
-        detail = last_decoder_line(chatter) or short_message(exc)
-        if "memory" in detail.lower():
-            # LibRaw's own allocation guard refused sizes derived from damaged fields.
-            detail = "damaged size fields (the decoder refused to allocate for them)"
-        raise InputError(path, f"unreadable camera raw file ({short_message(detail)})") from None
     if white <= float(np.max(black)):
         raise InputError(path, f"white level {white} is not above the black level {float(np.max(black))}")
     frame = None

@@ -26,6 +26,7 @@ from .images import (
     LoadedImage,
     check_declared_size,
     check_tiff_structure,
+    decoder_errors,
     last_decoder_line,
     max_pixels_limit,
     quiet_decoder,
@@ -114,7 +115,7 @@ def read_image(path: str | os.PathLike, *, max_pixels: int | None = None,
 def _read_tiff(path: Path, limit: int) -> LoadedImage:
     import tifffile
 
-    try:
+    with decoder_errors(path, "corrupt or truncated TIFF"):
         with quiet_decoder() as chatter, tifffile.TiffFile(path) as tif:
             if not tif.series:
                 raise InputError(path, "TIFF holds no image")
@@ -136,12 +137,6 @@ def _read_tiff(path: Path, limit: int) -> LoadedImage:
             desc = getattr(page, "description", "") or ""
             if desc.lstrip().startswith("{"):
                 meta["description"] = desc
-    except InputError:
-        raise
-    except MemoryError:
-        raise InputError(path, "too large to decode in memory") from None
-    except Exception as exc:  # tifffile raises many types for damaged files
-        raise InputError(path, f"corrupt or truncated TIFF ({short_message(exc)})") from None
     data = np.squeeze(data) if data.ndim > 3 else data
     if chatter and any("truncat" in str(c).lower() for c in chatter):
         raise InputError(path, f"corrupt or truncated TIFF ({short_message(last_decoder_line(chatter))})")
@@ -225,7 +220,7 @@ def _read_dicom(path: Path, limit: int) -> LoadedImage:
         content = _stdio.BytesIO(path.read_bytes())
     except OSError as exc:
         raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
-    try:
+    with decoder_errors(path, "corrupt DICOM"):
         with quiet_decoder():
             ds = pydicom.dcmread(content, force=path.suffix.lower() in DICOM_EXTENSIONS)
             if "PixelData" not in ds:
@@ -244,12 +239,6 @@ def _read_dicom(path: Path, limit: int) -> LoadedImage:
             spacing = ds.get("ImagerPixelSpacing", None) or ds.get("PixelSpacing", None)
             modality = str(ds.get("Modality", ""))
             relationship = str(ds.get("PixelIntensityRelationship", "") or "").strip()
-    except InputError:
-        raise
-    except MemoryError:
-        raise InputError(path, "too large to decode in memory") from None
-    except Exception as exc:  # pydicom raises many types for damaged files
-        raise InputError(path, f"corrupt DICOM ({short_message(exc)})") from None
     if data.ndim != 2 + (samples > 1):
         raise InputError(path, f"DICOM pixel data of shape {data.shape} is not a single radiograph")
     if photometric == "MONOCHROME1":
