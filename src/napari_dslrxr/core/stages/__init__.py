@@ -6,6 +6,8 @@
   :mod:`.screen` - the screen in the photograph, found on evidence; :mod:`.collimation` - the
   collimated field;
 * :mod:`.deconvolution` - deblurring with a known kernel (adaptive, Wiener, regularised least squares);
+  :mod:`.regularisation` - its automatic regularisation; :mod:`.fourier` - the padding, kernel OTF
+  and derivative spectra both share;
 * :mod:`.dynamic_range` - latitude reduction and the sigmoid display curve;
 * :mod:`.contrast` - multiscale (Laplacian-pyramid) contrast enhancement.
 
