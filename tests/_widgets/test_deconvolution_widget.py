@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.signal import fftconvolve
 
-from napari_dslrxr._widgets._common import viewer_camera
+from napari_dslrxr._widgets._layers import viewer_camera
 from napari_dslrxr._widgets.deconvolution import DeconvolutionWidget
 
 pytestmark = pytest.mark.gui

@@ -37,8 +37,9 @@ from ..core.params import PipelineParams
 from ..core.pipeline import apply_display_stages, process_frame, scale_display_radiograph
 from ..core.stages.contrast import ContrastParams
 from ..core.stages.dynamic_range import DynamicRangeParams
-from ._common import (JobPanel, LivePreviewMixin, debounced, guarded, param_widget, readout_label,
-                      restore_defaults_button, run_in_worker, show_layer)
+from ._controls import param_widget, restore_defaults_button
+from ._jobs import JobPanel, guarded, readout_label, run_in_worker
+from ._layers import LivePreviewMixin, debounced, show_layer
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:

@@ -27,8 +27,9 @@ from ..core.diagnosis import DiagnosisOptions, DiagnosisResult, diagnose_scene, 
 from ..core.errors import ParameterError
 from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
-from ._common import (JobPanel, guarded, notify_info, param_widget, readout_label, remove_layer,
-                      restore_defaults_button, run_in_worker, show_layer)
+from ._controls import param_widget, restore_defaults_button
+from ._jobs import JobPanel, guarded, notify_info, readout_label, run_in_worker
+from ._layers import remove_layer, show_layer
 
 if TYPE_CHECKING:
     import napari
