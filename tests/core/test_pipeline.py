@@ -94,7 +94,8 @@ def test_contrast_widget_and_core_share_the_display_stages(frames):
 
     pytest.importorskip("magicgui")
     from napari_dslrxr._widgets.contrast import DISPLAY, LINEAR, PreparedInput, render
-    from napari_dslrxr.core.pipeline import apply_display_stages, enhance_radiograph
+    from napari_dslrxr.core.display import apply_display_stages
+    from napari_dslrxr.core.pipeline import enhance_radiograph
 
     params = PipelineParams()  # off-default sliders and a white outside, so every field is used
     params.region = dataclasses.replace(params.region, rectify=False)

@@ -22,13 +22,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .stages.contrast import enhance_contrast
-from .stages.dynamic_range import CLIPPED_HIGH, CLIPPED_LOW, fit_to_display, reduce_dynamic_range, \
-    sigmoid_lut
-from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
+from .display import display_steps, scale_display_field, scale_to_voi_window
 from .params import PipelineParams
 from .stages.collimation import detect_collimation
-from .stages.region import Region, direct_exposure_level, polygon_mask, rectify, voi_window
+from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
+from .stages.region import Region, polygon_mask, rectify
 from .stages.screen import detect_screen
 
 #: Stage names, in the order their progress steps are yielded.
@@ -127,16 +125,6 @@ def _deblur_stage(colour: np.ndarray, mask: np.ndarray, kernel: np.ndarray, para
     return out if colour.ndim == 3 else out[..., 0]
 
 
-def _scale_to_voi_window(x: np.ndarray, sample: np.ndarray, params: PipelineParams) -> tuple[float, float]:
-    """Map the VOI window found on ``sample`` to [0, 1], in place on float32 ``x``; return the window."""
-    lo, hi = voi_window(sample, low_percentile=params.region.voi_low_percentile,
-                        high_percentile=params.region.voi_high_percentile,
-                        exclude_direct_exposure=params.region.exclude_direct_exposure)
-    x -= np.float32(lo)
-    x *= np.float32(1.0 / (hi - lo))
-    return lo, hi
-
-
 def _may_hold_blades(display_oriented: np.ndarray, mask: np.ndarray, factor: float) -> bool:
     """Cheap test before the blade search: does a side strip of the region attenuate like a blade?
 
@@ -217,6 +205,58 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     return combined, region
 
 
+def _flatfield_stage(cleaned: np.ndarray, reference: FlatReference, results: dict) -> np.ndarray:
+    """Stage (ii): the flat-field correction, and what the sidecar keeps of it."""
+    corrected = apply_flat_field(cleaned, reference)
+    results["flatfield"] = {"n_flats": reference.n_flats, "reference_pulses_cleaned": reference.cleaned_pulses,
+                            "applied": reference.denominator is not None}
+    if reference.denominator is None:
+        results["warnings"].append(
+            "no flat frame given: flat field not corrected (uneven illumination stays in the image)")
+    return corrected
+
+
+def _region_stage(corrected: np.ndarray, reference: FlatReference, params: PipelineParams, results: dict) -> Region:
+    """Stage (iii): the screen in the frame (values of interest come after the grey/log step)."""
+    region = detect_screen(corrected, params.region, illumination=reference.denominator)
+    results["region"] = {"polygon_xy": region.polygon_xy.round(2).tolist(), "detected": region.detected,
+                         "area_fraction": float(region.mask.mean()), "evidence": region.evidence}
+    if not region.detected and "reason" in region.evidence:
+        used = ("the area the flat frame saw exposed is used" if "flat_exposed_fraction" in region.evidence
+                else "the whole frame is used")
+        results["warnings"].append(f"region: no screen found ({region.evidence['reason']}); {used}")
+    return region
+
+
+def _attenuation_stage(grey: np.ndarray, region: Region, params: PipelineParams,
+                       results: dict) -> tuple[np.ndarray, np.ndarray, Region, tuple[float, float]]:
+    """The grey/log step: the grey image (sum of channels, photon-count weighting; float32, may
+    be overwritten) rectified when asked, to attenuation (log domain, bone white unless
+    ``as_captured``), the collimated field left out, the VOI window mapped to [0, 1].
+
+    Returns the attenuation, the region mask it uses, the region and the VOI window.
+    """
+    mask = region.mask
+    if params.region.rectify and (region.detected or params.region.polygon_xy):
+        grey = rectify(grey, region.polygon_xy)
+        mask = np.ones(grey.shape, bool)
+    step = max(1, int(np.sqrt(grey.size / 1_000_000)))  # statistics from a regular subsample
+    sub_mask = mask[::step, ::step]
+    sample = grey[::step, ::step][sub_mask] if sub_mask.any() else grey[::step, ::step].ravel()
+    floor = max(float(np.percentile(sample, 99.5)) * 1e-3, 1e-6)
+    np.maximum(grey, floor, out=grey)
+    attenuation = np.log(grey, out=grey)  # in place: grey is not needed any more
+    if params.output.polarity == "bone_white":
+        np.negative(attenuation, out=attenuation)
+    if params.region.detect_collimation:
+        mask, region = _collimated_field(attenuation, mask, region, params, results)
+        sub_mask = mask[::step, ::step]
+    sub_att = attenuation[::step, ::step]
+    lo, hi = scale_to_voi_window(attenuation, sub_att[sub_mask] if sub_mask.any() else sub_att, params)
+    results["voi_window"] = [lo, hi]
+    return attenuation, mask, region, (lo, hi)
+
+
 def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: Sequence[np.ndarray] = (),
                  black_level=None, psf_kernel: np.ndarray | None = None,
                  params: PipelineParams | None = None, reference: FlatReference | None = None,
@@ -259,8 +299,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     image = validate_image(image, "image")
     total = len(PIPELINE_STAGES)
     timings: dict[str, float] = {}
-    results: dict = {}
-    warnings: list[str] = results.setdefault("warnings", [])  # stages skipped or guessed, one line each
+    results: dict = {"warnings": []}  # stages skipped or guessed, one line each
     inter: dict = {}
     clock = time.perf_counter
 
@@ -282,12 +321,8 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
         offset = black_level if black_level is not None else params.flatfield.black_level_counts
         reference = prepare_flat_reference(image.shape, flats=flats, darks=darks, black_level=offset,
                                            params=params.flatfield)
-    corrected = apply_flat_field(cleaned, reference)
+    corrected = _flatfield_stage(cleaned, reference, results)
     del cleaned
-    results["flatfield"] = {"n_flats": reference.n_flats, "reference_pulses_cleaned": reference.cleaned_pulses,
-                            "applied": reference.denominator is not None}
-    if reference.denominator is None:
-        warnings.append("no flat frame given: flat field not corrected (uneven illumination stays in the image)")
     if keep_intermediates:
         inter["flatfield"] = corrected
     timings["flatfield"] = clock() - t0
@@ -295,13 +330,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
 
     # (iii) screen region (values of interest come after the grey/log conversion)
     t0 = clock()
-    region = detect_screen(corrected, params.region, illumination=reference.denominator)
-    results["region"] = {"polygon_xy": region.polygon_xy.round(2).tolist(), "detected": region.detected,
-                         "area_fraction": float(region.mask.mean()), "evidence": region.evidence}
-    if not region.detected and "reason" in region.evidence:
-        used = ("the area the flat frame saw exposed is used" if "flat_exposed_fraction" in region.evidence
-                else "the whole frame is used")
-        warnings.append(f"region: no screen found ({region.evidence['reason']}); {used}")
+    region = _region_stage(corrected, reference, params, results)
     timings["region"] = clock() - t0
     yield 3, total
 
@@ -311,7 +340,7 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
         corrected = _deblur_stage(corrected, region.mask, np.asarray(psf_kernel, np.float32), params, results)
     else:
         results["deblur"] = "skipped (no PSF model given)"
-        warnings.append("no PSF model given: not deblurred")
+        results["warnings"].append("no PSF model given: not deblurred")
     timings["deblur"] = clock() - t0
     yield 4, total
 
@@ -319,24 +348,8 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     t0 = clock()
     grey = corrected.sum(axis=2, dtype=np.float32) if corrected.ndim == 3 else corrected.astype(np.float32)
     del corrected
-    mask = region.mask
-    if params.region.rectify and (region.detected or params.region.polygon_xy):
-        grey = rectify(grey, region.polygon_xy)
-        mask = np.ones(grey.shape, bool)
-    step = max(1, int(np.sqrt(grey.size / 1_000_000)))  # statistics from a regular subsample
-    sub_mask = mask[::step, ::step]
-    sample = grey[::step, ::step][sub_mask] if sub_mask.any() else grey[::step, ::step].ravel()
-    floor = max(float(np.percentile(sample, 99.5)) * 1e-3, 1e-6)
-    np.maximum(grey, floor, out=grey)
-    attenuation = np.log(grey, out=grey)  # in place: grey is not needed any more
-    if params.output.polarity == "bone_white":
-        np.negative(attenuation, out=attenuation)
-    if params.region.detect_collimation:
-        mask, region = _collimated_field(attenuation, mask, region, params, results)
-        sub_mask = mask[::step, ::step]
-    sub_att = attenuation[::step, ::step]
-    lo, hi = _scale_to_voi_window(attenuation, sub_att[sub_mask] if sub_mask.any() else sub_att, params)
-    results["voi_window"] = [lo, hi]
+    attenuation, mask, region, (lo, hi) = _attenuation_stage(grey, region, params, results)
+    del grey  # the attenuation was computed in its place
     if keep_intermediates:
         inter["attenuation"] = attenuation.copy()
     timings["grey_log"] = clock() - t0
@@ -345,11 +358,11 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     # (v) dynamic-range / latitude reduction, (vi) multiscale contrast, display curve: the
     # same steps as apply_display_stages, one at a time for the progress and the timings
     display_report: dict = {}
-    display_steps = _display_steps(attenuation, mask, params, report=display_report)
+    remaining = display_steps(attenuation, mask, params, report=display_report)
     del attenuation  # the steps' generator holds it until stage (v) is done
     for step, stage in ((6, "dynamic_range"), (7, "contrast")):
         t0 = clock()
-        stage_output = next(display_steps)
+        stage_output = next(remaining)
         if keep_intermediates:
             inter[stage] = stage_output.copy()
         del stage_output
@@ -357,148 +370,12 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
         yield step, total
 
     t0 = clock()
-    display = next(display_steps)
+    display = next(remaining)
     results["display"] = display_report
     timings["display"] = clock() - t0
     yield 8, total
     return PipelineResult(display=display, region=region, voi_window=(lo, hi), timings_s=timings,
                           results=results, intermediates=inter, params=params)
-
-
-def _anatomy_grid(image: np.ndarray, mask: np.ndarray | None, params: PipelineParams) -> tuple[int, np.ndarray]:
-    """Regular subsample step and its anatomy mask: inside ``mask``, outside direct exposure.
-
-    ``image`` is the value-of-interest scaled attenuation; the direct-exposure level is the
-    one the value-of-interest window leaves out (:func:`direct_exposure_level`).
-    """
-    step = max(1, int(np.sqrt(image.size / 1_000_000)))
-    sub = image[::step, ::step]
-    anatomy = np.ones(sub.shape, bool) if mask is None else mask[::step, ::step].copy()
-    if not anatomy.any():
-        anatomy[...] = True
-    if params.region.exclude_direct_exposure:
-        # the conservative level: thin tissue beside the direct exposure must not burn out
-        low = direct_exposure_level(sub[anatomy], at_foot=True)
-        if low is not None:
-            anatomy &= sub >= low
-    return step, anatomy
-
-
-def _display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelineParams,
-                   fill_outside: bool = True, report: dict | None = None) -> Generator[np.ndarray, None, None]:
-    """Yield the image after dynamic-range reduction, after contrast, and the display image.
-
-    The body of :func:`apply_display_stages`, one stage per ``next`` so that
-    :func:`run_pipeline` can report progress and time each stage. The generator releases
-    ``image`` once the first stage is done and each stage's result once the next is done.
-    Before the display curve the anatomy is kept off the display's ends
-    (:func:`~napari_dslrxr.core.dynamic_range.fit_to_display`); ``report`` (when given) gets
-    the adjustment (``display_fit``) and the share of the anatomy still clipped
-    (``clipped_fraction``).
-    """
-    step, anatomy = _anatomy_grid(image, mask, params)
-    x = reduce_dynamic_range(image, mask, params.dynamic_range)
-    del image
-    yield x
-    x = enhance_contrast(x, params.contrast, mask)
-    yield x
-    fit = fit_to_display(x, x[::step, ::step][anatomy], params.dynamic_range)
-    x = sigmoid_lut(x, params.dynamic_range)
-    if report is not None:
-        shown = x[::step, ::step][anatomy]
-        report["display_fit"] = fit
-        report["clipped_fraction"] = round(float(np.mean((shown <= CLIPPED_LOW) | (shown >= CLIPPED_HIGH))), 5) \
-            if shown.size else 0.0
-    if fill_outside and mask is not None and not mask.all():
-        x[~mask] = 0.0 if params.output.outside_region == "black" else 1.0
-    yield x
-
-
-def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
-                         params: PipelineParams | None = None, *, fill_outside: bool = True,
-                         report: dict | None = None) -> np.ndarray:
-    """Stages v-vi and the display curve on a value-of-interest scaled attenuation image.
-
-    The display end of the chain, shared by :func:`run_pipeline`, :func:`enhance_radiograph`
-    and the napari contrast widget: dynamic-range / latitude reduction
-    (:func:`~napari_dslrxr.core.stages.dynamic_range.reduce_dynamic_range`), multiscale contrast
-    (:func:`~napari_dslrxr.core.stages.contrast.enhance_contrast`), the sigmoid display curve
-    (:func:`~napari_dslrxr.core.stages.dynamic_range.sigmoid_lut`), then the pixels outside the
-    region set to black (0) or white (1) as ``params.output.outside_region`` says.
-
-    Parameters
-    ----------
-    image : ndarray, float32, (H, W)
-        Value-of-interest scaled attenuation, dimensionless: the VOI window maps to 0..1
-        (values outside it are kept). Not modified.
-    mask : ndarray, bool, (H, W), optional
-        Screen region: the stages' statistics and low-passes use only these pixels.
-        None = all pixels.
-    params : PipelineParams, optional
-        Uses ``dynamic_range``, ``contrast`` and ``output.outside_region``.
-    fill_outside : bool
-        Set the pixels outside ``mask`` to the ``outside_region`` value (as the pipeline's
-        output does); False leaves them processed like the rest.
-    report : dict, optional
-        Receives ``display_fit`` (the compression that kept the anatomy off the display's
-        ends) and ``clipped_fraction`` (the share of the anatomy still at pure black or
-        white), as the pipeline's sidecar records them.
-
-    Returns
-    -------
-    ndarray, float32, (H, W)
-        Display values in [0, 1] (a new array).
-    """
-    params = params or PipelineParams()
-    for display in _display_steps(image, mask, params, fill_outside, report):
-        pass  # rebinding drops each intermediate as soon as the next stage is done
-    return display
-
-
-def scale_display_radiograph(image: np.ndarray, params: PipelineParams | None = None,
-                             mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, bool]:
-    """Value-of-interest scaling of a grey display radiograph, inside its collimated field.
-
-    The step before :func:`apply_display_stages` for radiographs that are already log-scaled
-    and bone-bright (CR/DR DICOM after MONOCHROME1 inversion), shared by
-    :func:`enhance_radiograph` and the napari contrast widget.
-
-    Parameters
-    ----------
-    image : ndarray, (H, W)
-        Grey radiograph (any real dtype), higher = brighter on display. Not modified.
-    params : PipelineParams, optional
-        Uses ``region`` (VOI percentiles, ``detect_collimation``, ``collimation_inset_px``).
-    mask : ndarray, bool, optional
-        Region of interest for the statistics. Default: when ``params.region.detect_collimation``
-        is true, the exposed field found by :func:`~napari_dslrxr.core.stages.collimation.detect_collimation`;
-        None (all pixels) when no collimation is found or detection is off.
-
-    Returns
-    -------
-    scaled : ndarray, float32, (H, W)
-        The VOI window mapped to 0..1 (values outside it kept).
-    mask : ndarray, bool, (H, W) or None
-        The region used.
-    fill_outside : bool
-        True when ``mask`` is a detected collimated field, whose outside the display should
-        shutter (a caller's own mask only restricts the statistics).
-    """
-    x, mask, field, _ = _scale_display(image, params or PipelineParams(), mask)
-    return x, mask, field is not None
-
-
-def _scale_display(image: np.ndarray, params: PipelineParams, mask: np.ndarray | None):
-    """:func:`scale_display_radiograph`, also giving the collimated field found (a
-    :class:`~.region.Region`, or None) and the VOI window."""
-    x = np.asarray(image, np.float32).copy()
-    field = None
-    if mask is None and params.region.detect_collimation:
-        found = detect_collimation(x, inset_px=params.region.collimation_inset_px)
-        if found.detected:
-            field, mask = found, found.mask
-    window = _scale_to_voi_window(x, x[mask] if mask is not None else x, params)
-    return x, mask, field, window
 
 
 def enhance_radiograph(image: np.ndarray, params: PipelineParams | None = None,
@@ -569,7 +446,7 @@ def run_display_pipeline(image: np.ndarray, *, params: PipelineParams | None = N
     timings: dict[str, float] = {}
     inter: dict = {}
     t0 = clock()
-    x, mask, field, (lo, hi) = _scale_display(grey, params, mask)
+    x, mask, field, (lo, hi) = scale_display_field(grey, params, mask)
     if params.output.polarity == "as_captured":
         np.subtract(np.float32(1.0), x, out=x)
     h, w = x.shape
@@ -586,7 +463,7 @@ def run_display_pipeline(image: np.ndarray, *, params: PipelineParams | None = N
         inter["attenuation"] = x.copy()
     timings["region"] = clock() - t0
     yield 1, total
-    steps = _display_steps(x, mask, params, fill_outside=field is not None, report=results.setdefault("display", {}))
+    steps = display_steps(x, mask, params, fill_outside=field is not None, report=results.setdefault("display", {}))
     del x
     for step, stage in ((2, "dynamic_range"), (3, "contrast"), (4, "display")):
         t0 = clock()
