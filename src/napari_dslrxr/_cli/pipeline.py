@@ -77,6 +77,93 @@ def _expand_inputs(inputs: list[Path]) -> list[Path]:
     return files
 
 
+def _run_params(config: Path | None, *, dicom: bool | None, scheduler: str | None, jobs: int | None):
+    """The parameter file (defaults without one) with the command line's options on top, checked
+    as the file's values are."""
+    from ..core.params import PipelineParams, load_params, validate_params
+
+    params = load_params(config) if config is not None else PipelineParams()
+    if dicom is not None:
+        params.output.dicom = dicom
+    if scheduler is not None:
+        params.batch.scheduler = scheduler
+    if jobs is not None:
+        params.batch.jobs = jobs
+    return validate_params(params)  # an option's value gets the parameter file's checks
+
+
+def _plan_jobs(files: list[Path], out: Path, params, request: dict, *, overwrite: bool) -> list[dict]:
+    """One job per input whose finished outputs do not match a rerun (all of them with
+    ``overwrite``); says on stderr which files are skipped and why others are redone."""
+    from ..core.params import params_to_dict
+    from ..core.rerun import check_finished
+
+    todo, skipped, redo = [], 0, {}
+    checksums: dict = {}  # reference files are hashed once for the whole batch
+    for f in files:
+        if not overwrite:
+            check = check_finished(f, out, params, checksums=checksums, **request)
+            if check.done:
+                skipped += 1
+                continue
+            if not check.new:
+                redo.setdefault(check.reason, []).append(f.name)
+        todo.append({"input": str(f), "out_dir": str(out), "params": params_to_dict(params),
+                     "flats": [str(p) for p in request["flat_paths"]], "darks": [str(p) for p in request["dark_paths"]],
+                     "psf": str(request["psf_path"]) if request["psf_path"] else None,
+                     "sod": request["source_to_object_mm"], "sdd": request["source_to_detector_mm"],
+                     "patient": request["patient"]})
+    if skipped:
+        print(f"dslrxr: skipped {skipped} file(s): their finished outputs match the inputs, parameters "
+              "and version (use --overwrite to redo)", file=sys.stderr)
+    for reason, names in redo.items():
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        print(f"dslrxr: redoing {shown}: {reason}", file=sys.stderr)
+    return todo
+
+
+def _run_jobs(todo: list[dict], files: list[Path], params, request: dict) -> int:
+    """Run the jobs (one after the other, in a process pool, or on dask.distributed) and report
+    each on stderr as it finishes; return how many failed."""
+    failed = 0
+    total = len(todo)
+
+    def report(i: int, outcome: tuple[str, bool, str, float, list[str]]) -> None:
+        nonlocal failed
+        name, ok, message, seconds, warnings = outcome
+        for warning in warnings:  # a stage skipped or guessed: one line each
+            print(f"dslrxr: warning: {name}: {warning}", file=sys.stderr)
+        if ok:
+            print(f"[{i}/{total}] {name}: {message} ({seconds:.1f} s)", file=sys.stderr)
+        else:
+            failed += 1
+            text = " ".join(message.split())
+            text = text if text.startswith(name) else f"{name}: {text}"
+            print(f"[{i}/{total}] dslrxr: error: {text}", file=sys.stderr)
+
+    scheduler, jobs = params.batch.scheduler, params.batch.jobs
+    if scheduler and total:
+        from ..core.files import prepare_batch_references
+        from .cluster import run_on_cluster
+
+        psf = request["psf_path"]
+        references = prepare_batch_references(files, params=params, flat_paths=[str(p) for p in request["flat_paths"]],
+                                              dark_paths=[str(p) for p in request["dark_paths"]],
+                                              psf_path=str(psf) if psf else None,
+                                              source_to_object_mm=request["source_to_object_mm"],
+                                              source_to_detector_mm=request["source_to_detector_mm"])
+        run_on_cluster(todo, references, scheduler=scheduler, n_workers=jobs, report=report)
+    elif jobs > 1 and total > 1:
+        with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool:
+            for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
+                report(i, outcome)
+    else:
+        cache: dict = {}  # flats and darks are read and prepared once for the batch
+        for i, job in enumerate(todo, start=1):
+            report(i, _process_one(job, cache))
+    return failed
+
+
 def register(app: typer.Typer) -> None:
     """Add ``run`` and ``params`` to ``app``."""
 
@@ -108,20 +195,8 @@ def register(app: typer.Typer) -> None:
         A file is skipped only when its finished outputs' sidecars record the same input
         checksums, parameters and version; otherwise it is processed again.
         """
-        from ..core.params import PipelineParams, load_params, params_to_dict, validate_params
-        from ..core.files import prepare_batch_references
-        from ..core.rerun import check_finished
-
-        params = load_params(config) if config is not None else PipelineParams()
-        if dicom is not None:
-            params.output.dicom = dicom
-        if scheduler is not None:
-            params.batch.scheduler = scheduler
-        if jobs is not None:
-            params.batch.jobs = jobs
-        params = validate_params(params)  # an option's value gets the parameter file's checks
-        scheduler, jobs = params.batch.scheduler, params.batch.jobs
-        if scheduler:
+        params = _run_params(config, dicom=dicom, scheduler=scheduler, jobs=jobs)
+        if params.batch.scheduler:
             from .cluster import import_distributed
 
             import_distributed()  # says how to install it before any work is done
@@ -133,70 +208,18 @@ def register(app: typer.Typer) -> None:
         files = _expand_inputs(inputs)
         if not files:
             raise ParameterError("no input files found")
-        if scheduler not in ("", "local"):
+        if params.batch.scheduler not in ("", "local"):
             # workers elsewhere do not share this working folder: give them absolute names
             files, flat, dark = [f.absolute() for f in files], [p.absolute() for p in flat], [p.absolute() for p in dark]
             psf, out = (psf.absolute() if psf else None), out.absolute()
         out.mkdir(parents=True, exist_ok=True)
-        patient = {k: v for k, v in (("PatientName", patient_name), ("PatientID", patient_id)) if v}
-        todo, skipped, redo = [], 0, {}
-        checksums: dict = {}  # reference files are hashed once for the whole batch
-        for f in files:
-            if not overwrite:
-                check = check_finished(f, out, params, flat_paths=flat, dark_paths=dark, psf_path=psf,
-                                       source_to_object_mm=source_to_object_mm,
-                                       source_to_detector_mm=source_to_detector_mm, patient=patient,
-                                       checksums=checksums)
-                if check.done:
-                    skipped += 1
-                    continue
-                if not check.new:
-                    redo.setdefault(check.reason, []).append(f.name)
-            todo.append({"input": str(f), "out_dir": str(out), "params": params_to_dict(params),
-                         "flats": [str(p) for p in flat], "darks": [str(p) for p in dark],
-                         "psf": str(psf) if psf else None, "sod": source_to_object_mm,
-                         "sdd": source_to_detector_mm, "patient": patient})
-        if skipped:
-            print(f"dslrxr: skipped {skipped} file(s): their finished outputs match the inputs, parameters "
-                  "and version (use --overwrite to redo)", file=sys.stderr)
-        for reason, names in redo.items():
-            shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
-            print(f"dslrxr: redoing {shown}: {reason}", file=sys.stderr)
-        failed = 0
-        total = len(todo)
-
-        def report(i: int, outcome: tuple[str, bool, str, float, list[str]]) -> None:
-            nonlocal failed
-            name, ok, message, seconds, warnings = outcome
-            for warning in warnings:  # a stage skipped or guessed: one line each
-                print(f"dslrxr: warning: {name}: {warning}", file=sys.stderr)
-            if ok:
-                print(f"[{i}/{total}] {name}: {message} ({seconds:.1f} s)", file=sys.stderr)
-            else:
-                failed += 1
-                text = " ".join(message.split())
-                text = text if text.startswith(name) else f"{name}: {text}"
-                print(f"[{i}/{total}] dslrxr: error: {text}", file=sys.stderr)
-
-        if scheduler and total:
-            from .cluster import run_on_cluster
-
-            references = prepare_batch_references(files, params=params, flat_paths=[str(p) for p in flat],
-                                                  dark_paths=[str(p) for p in dark],
-                                                  psf_path=str(psf) if psf else None,
-                                                  source_to_object_mm=source_to_object_mm,
-                                                  source_to_detector_mm=source_to_detector_mm)
-            run_on_cluster(todo, references, scheduler=scheduler, n_workers=jobs, report=report)
-        elif jobs > 1 and total > 1:
-            with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool:
-                for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
-                    report(i, outcome)
-        else:
-            cache: dict = {}  # flats and darks are read and prepared once for the batch
-            for i, job in enumerate(todo, start=1):
-                report(i, _process_one(job, cache))
+        request = {"flat_paths": flat, "dark_paths": dark, "psf_path": psf, "source_to_object_mm": source_to_object_mm,
+                   "source_to_detector_mm": source_to_detector_mm,
+                   "patient": {k: v for k, v in (("PatientName", patient_name), ("PatientID", patient_id)) if v}}
+        todo = _plan_jobs(files, out, params, request, overwrite=overwrite)
+        failed = _run_jobs(todo, files, params, request)
         if failed:
-            print(f"dslrxr: {failed} of {total} file(s) failed", file=sys.stderr)
+            print(f"dslrxr: {failed} of {len(todo)} file(s) failed", file=sys.stderr)
             raise typer.Exit(1)
         return 0
 
