@@ -189,7 +189,7 @@ def _psf_kernel(psf_path: str | os.PathLike, source_to_object_mm: float | None,
     """The PSF kernel at this geometry: from ``cache`` (keyed by :func:`psf_kernel_key`), or
     read from the model file and stored there."""
     if source_to_object_mm is None or source_to_detector_mm is None:
-        raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
+        raise ParameterError("a PSF model needs the object's geometry: both source_to_object_mm and source_to_detector_mm")
     key = psf_kernel_key(psf_path, source_to_object_mm, source_to_detector_mm)
     kernel = cache.get(key) if cache is not None else None
     if kernel is None:

@@ -25,7 +25,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "hsv_counts_to_rgb", "dominant_hue", "remove_impulses", "remove_impulses_cfa",
         "cfa_mask_to_mosaic", "demosaic_cleaned_raw"),
     "flatfield": ("FlatFieldParams", "FlatReference", "remove_bright_pulses", "combine_frames",
-        "prepare_flat_reference", "apply_flat_field", "flat_field_correct"),
+        "prepare_flat_reference", "apply_flat_field"),
     "region": ("RegionParams", "Region", "order_corners", "polygon_mask", "shrink_polygon",
         "direct_exposure_level", "voi_window", "rectify"),
     "screen": ("screen_evidence", "detect_screen"),
