@@ -65,12 +65,7 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
     import numpy as np
 
     from ..core.errors import ParameterError
-    from ..core.stages.impulse import (
-        cfa_mask_to_mosaic,
-        demosaic_cleaned_raw,
-        remove_impulses,
-        remove_impulses_cfa,
-    )
+    from ..core.stages.impulse import cfa_mask_to_mosaic, clean_raw_frame, remove_impulses
     from ..core.files import write_output
     from ..core.io import check_not_an_input, read_image, write_tiff
     from .common import ensure_parent
@@ -92,8 +87,7 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
     if used_space == "cfa":
         if not is_raw:
             raise ParameterError(f"--space cfa needs a camera raw input; {input_path} is {loaded.format}")
-        result = remove_impulses_cfa(loaded.raw.cfa_planes, params)
-        image = demosaic_cleaned_raw(input_path, result.image, loaded.raw)
+        image, result = clean_raw_frame(loaded, params)
         mask = cfa_mask_to_mosaic(result.masks, loaded.raw.plane_offsets, image.shape[:2])
     else:
         result = remove_impulses(loaded.data, dataclasses.replace(params, space=used_space))

@@ -315,10 +315,9 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
         black = 0.0  # rawpy's linear RGB has the black level subtracted already
         if loaded.raw is not None and params.impulse.passes_grey > 0 and params.impulse.space in ("auto", "cfa"):
             # stage (i) on the Bayer planes, before demosaicing spreads each zinger
-            from .stages.impulse import demosaic_cleaned_raw, remove_impulses_cfa
+            from .stages.impulse import clean_raw_frame
 
-            cfa = remove_impulses_cfa(loaded.raw.cfa_planes, params.impulse)
-            image = demosaic_cleaned_raw(input_path, cfa.image, loaded.raw)
+            image, cfa = clean_raw_frame(loaded, params.impulse)
             impulses_removed = impulse_record(cfa, space="cfa")
     t_cfa = time.perf_counter() - t_cfa
     kernel = None

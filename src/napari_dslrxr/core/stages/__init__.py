@@ -23,7 +23,7 @@ from .._lazy import lazy_exports
 _PUBLIC: dict[str, tuple[str, ...]] = {
     "impulse": ("MEDIAN_RESIDUAL_VARIANCE_FACTOR", "ImpulseParams", "ImpulseResult", "rgb_to_hsv_counts",
         "hsv_counts_to_rgb", "dominant_hue", "remove_impulses", "remove_impulses_cfa",
-        "cfa_mask_to_mosaic", "demosaic_cleaned_raw"),
+        "cfa_mask_to_mosaic", "demosaic_cleaned_raw", "clean_raw_frame"),
     "flatfield": ("FlatFieldParams", "FlatReference", "remove_bright_pulses", "combine_frames",
         "prepare_flat_reference", "apply_flat_field"),
     "region": ("RegionParams", "Region", "order_corners", "polygon_mask", "shrink_polygon",

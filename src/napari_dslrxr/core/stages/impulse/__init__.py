@@ -64,7 +64,7 @@ ring and window medians), ``noise_model`` (mixture and EM fit),
 ``colour`` (HSV path), ``removal`` (:func:`remove_impulses`), ``cfa`` (raw Bayer planes).
 """
 
-from .cfa import cfa_mask_to_mosaic, demosaic_cleaned_raw, remove_impulses_cfa
+from .cfa import cfa_mask_to_mosaic, clean_raw_frame, demosaic_cleaned_raw, remove_impulses_cfa
 from .colour import dominant_hue, hsv_counts_to_rgb, rgb_to_hsv_counts
 from .params import MEDIAN_RESIDUAL_VARIANCE_FACTOR, SPACES, SPOT_POLARITIES, ImpulseParams, ImpulseResult
 from .removal import remove_impulses
@@ -74,6 +74,7 @@ __all__ = [
     "ImpulseResult",
     "remove_impulses",
     "remove_impulses_cfa",
+    "clean_raw_frame",
     "cfa_mask_to_mosaic",
     "demosaic_cleaned_raw",
     "rgb_to_hsv_counts",
