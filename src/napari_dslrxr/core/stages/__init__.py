@@ -6,8 +6,9 @@
   :mod:`.screen` - the screen in the photograph, found on evidence; :mod:`.collimation` - the
   collimated field;
 * :mod:`.deconvolution` - deblurring with a known kernel (adaptive, Wiener, regularised least squares);
-  :mod:`.regularisation` - its automatic regularisation; :mod:`.fourier` - the padding, kernel OTF
-  and derivative spectra both share;
+  :mod:`.deblur_params` - its parameters (the one range of ``reg``); :mod:`.deblur_solvers` - the
+  solvers and noise estimate; :mod:`.regularisation` - the automatic regularisation;
+  :mod:`.fourier` - the padding, kernel OTF and derivative spectra they share;
 * :mod:`.dynamic_range` - latitude reduction and the sigmoid display curve;
 * :mod:`.contrast` - multiscale (Laplacian-pyramid) contrast enhancement.
 
@@ -30,9 +31,10 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "direct_exposure_level", "voi_window", "rectify"),
     "screen": ("screen_evidence", "detect_screen"),
     "collimation": ("detect_collimation",),
-    "deconvolution": ("METHODS", "DeconvolutionParams", "check_method", "check_reg", "validate_kernel",
-        "robust_range", "estimate_noise_sigma", "gradient_spectrum", "fo_derivative_spectrum",
-        "kernel_otf", "pad_and_taper", "deconvolve_steps", "deconvolve"),
+    "deblur_params": ("METHODS", "DeconvolutionParams", "check_method", "check_reg"),
+    "deblur_solvers": ("validate_kernel", "robust_range", "estimate_noise_sigma"),
+    "fourier": ("gradient_spectrum", "fo_derivative_spectrum", "kernel_otf", "pad_and_taper"),
+    "deconvolution": ("deconvolve_steps", "deconvolve"),
     "regularisation": ("AUTO_MAX_NOISE_GAIN", "RegularisationChoice", "estimate_regularisation",
         "model_regularisation", "choose_regularisation", "flat_noise_gain"),
     "dynamic_range": ("DynamicRangeParams", "masked_lowpass", "edge_aware_lowpass", "reduce_dynamic_range",
