@@ -49,12 +49,12 @@ def import_distributed():
 
 
 def _run_on_worker(job: dict, references: dict | None) -> tuple[str, bool, str, float]:
-    """The task of one file: :func:`_process_one` with the scattered references."""
-    from .pipeline import _process_one
+    """The task of one file: :func:`~.file_job.process_one` with the scattered references."""
+    from .file_job import process_one
 
     for key, value in (references or {}).items():
         _worker_references.setdefault(key, value)
-    return _process_one(job, _worker_references)
+    return process_one(job, _worker_references)
 
 
 def _peak_rss_mb() -> float:

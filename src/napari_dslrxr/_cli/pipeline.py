@@ -3,51 +3,13 @@
 from __future__ import annotations
 
 import sys
-import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import typer
 
-from ..core.errors import DslrxrError, ParameterError
-
-
-def _run_warnings(written: list) -> list[str]:
-    """The warnings a run recorded in its sidecar (stages skipped or guessed)."""
-    import json
-
-    from ..core.io.provenance import sidecar_path
-
-    for path in written:
-        try:
-            return list(json.loads(sidecar_path(path).read_text(encoding="utf-8"))["results"].get("warnings", []))
-        except (OSError, ValueError, KeyError, TypeError):
-            continue
-    return []
-
-
-def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, bool, str, float, list[str]]:
-    """Worker: run one input; returns (input, ok, message, seconds, warnings). Picklable for processes.
-
-    ``reference_cache`` (sequential runs) keeps the prepared flat reference between files.
-    """
-    from ..core.params import params_from_dict
-    from ..core.files import run_file
-
-    t0 = time.perf_counter()
-    try:
-        params = params_from_dict(job["params"])
-        written = run_file(job["input"], job["out_dir"], params=params, flat_paths=job["flats"],
-                           dark_paths=job["darks"], psf_path=job["psf"],
-                           source_to_object_mm=job["sod"], source_to_detector_mm=job["sdd"],
-                           patient=job["patient"], reference_cache=reference_cache,
-                           warn=lambda line: print(f"dslrxr: {job['input']}: {line}", file=sys.stderr))
-        return (job["input"], True, f"wrote {len(written)} file(s)", time.perf_counter() - t0,
-                _run_warnings(written))
-    except DslrxrError as exc:
-        return job["input"], False, str(exc), time.perf_counter() - t0, []
-    except MemoryError:
-        return job["input"], False, "out of memory", time.perf_counter() - t0, []
+from ..core.errors import ParameterError
+from .file_job import process_one
 
 
 #: Flat references prepared in this worker process (``--jobs > 1``): each worker reads and prepares
@@ -61,7 +23,7 @@ def _init_worker() -> None:
 
 
 def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
-    return _process_one(job, _worker_references)
+    return process_one(job, _worker_references)
 
 
 def _expand_inputs(inputs: list[Path]) -> list[Path]:
@@ -160,7 +122,7 @@ def _run_jobs(todo: list[dict], files: list[Path], params, request: dict) -> int
     else:
         cache: dict = {}  # flats and darks are read and prepared once for the batch
         for i, job in enumerate(todo, start=1):
-            report(i, _process_one(job, cache))
+            report(i, process_one(job, cache))
     return failed
 
 
