@@ -4,6 +4,8 @@ A DSLR photographing an X-ray scintillator records, besides the screen light, di
 hits on its sensor: bright spots of one pixel on the raw mosaic that demosaicing spreads into
 2x2 to 4x4 coloured patches. This module detects them with a statistical test and replaces
 only the detected pixels; every other pixel is returned bit-for-bit unchanged.
+The other pulse detectors of the package (reference frames, diagnosis, repeated exposures) and
+why each differs from this one: ``docs/architecture.md``, section 'Pulse detectors'.
 
 Model (Frosio & Borghese, IEEE TMI 28(1), 2009; Frosio, Abati & Borghese, IJCARS 2008;
 ``docs/algorithms/impulse.md``; issue 13's additions and limits in ``docs/impulse.md``). For a pixel value ``x`` and the median ``m``
