@@ -75,9 +75,6 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     OutputError
         Wrong image dtype/shape or an unknown patient field.
     """
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
-
     from .writers import atomic_write
 
     arr = np.ascontiguousarray(image)
@@ -88,6 +85,21 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     if unknown:
         raise OutputError(f"{path}: unknown patient field(s) {', '.join(unknown)} "
                           f"(allowed: {', '.join(ALLOWED_PATIENT_FIELDS)})")
+    ds = _dx_identity(uid_seed)
+    _set_patient_and_study(ds, patient, series_description)
+    _set_image(ds, arr, window=window, pixel_spacing_mm=pixel_spacing_mm, linear=linear)
+
+    def _write(tmp: str) -> None:
+        ds.save_as(tmp, enforce_file_format=True)
+
+    return atomic_write(Path(path), _write, inputs=inputs)
+
+
+def _dx_identity(uid_seed: str):
+    """A DX For Presentation dataset with its file meta and UIDs, all derived from ``uid_seed``."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
+
     sop_uid = deterministic_uid(uid_seed, "sop")
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = DX_FOR_PRESENTATION
@@ -104,7 +116,12 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     ds.Modality = "DX"
     ds.ImageType = ["DERIVED", "PRIMARY"]
     ds.PresentationIntentType = "FOR PRESENTATION"
-    # type 2 attributes: present, empty unless the user supplied them (no dates: reproducible)
+    return ds
+
+
+def _set_patient_and_study(ds, patient: dict, series_description: str) -> None:
+    """Patient, study and series attributes: type 2 ones present, empty unless the user supplied
+    them (no dates or times: the file is reproducible)."""
     ds.PatientName = patient.get("PatientName", "")
     ds.PatientID = patient.get("PatientID", "")
     ds.PatientBirthDate = patient.get("PatientBirthDate", "")
@@ -128,6 +145,11 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     ds.DetectorType = "SCINTILLATOR"
     ds.BurnedInAnnotation = "NO"
     ds.LossyImageCompression = "00"
+
+
+def _set_image(ds, arr: np.ndarray, *, window: tuple[float, float] | None,
+               pixel_spacing_mm: float | tuple[float, float] | None, linear: bool) -> None:
+    """The image module: 16-bit MONOCHROME2 pixels, intensity relationship, VOI window, spacing."""
     ds.SamplesPerPixel = 1
     ds.PhotometricInterpretation = "MONOCHROME2"
     ds.Rows, ds.Columns = int(arr.shape[0]), int(arr.shape[1])
@@ -149,8 +171,3 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
         ds.ImagerPixelSpacing = spacing
         ds.PixelSpacing = spacing
     ds.PixelData = arr.astype("<u2").tobytes()
-
-    def _write(tmp: str) -> None:
-        ds.save_as(tmp, enforce_file_format=True)
-
-    return atomic_write(Path(path), _write, inputs=inputs)
