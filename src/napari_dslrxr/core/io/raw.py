@@ -13,26 +13,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .images import (
-    MIN_SIDE_PX,
-    TIFF_MAGIC,
-    LoadedImage,
-    RawFrame,
-    check_declared_size,
-    check_tiff_structure,
-    decoder_errors,
-    last_decoder_line,
-    max_pixels_limit,
-    quiet_decoder,
-    short_message,
-    validate_image,
-)
+from . import images
 
 _CFA_NAMES = ("R", "G1", "G2", "B")
 
 
 def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
-             with_planes: bool = True) -> LoadedImage:
+             with_planes: bool = True) -> images.LoadedImage:
     """Read a camera raw file (CR2, NEF, DNG, ARW...) through rawpy/LibRaw.
 
     The black level, white level and CFA pattern are read from the file, never assumed.
@@ -47,7 +34,7 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
         65535); ``raw`` holds the CFA planes (float32 counts above black).
     """
     path = Path(path)
-    limit = max_pixels_limit(max_pixels)
+    limit = images.max_pixels_limit(max_pixels)
     try:
         import rawpy
     except ImportError:  # pragma: no cover - rawpy is a hard dependency
@@ -58,13 +45,13 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     with open(path, "rb") as fh:
-        is_tiff_based = fh.read(4) in TIFF_MAGIC  # DNG, CR2, NEF, ARW, PEF...
+        is_tiff_based = fh.read(4) in images.TIFF_MAGIC  # DNG, CR2, NEF, ARW, PEF...
     if is_tiff_based:
         import tifffile
 
         try:
-            with quiet_decoder(), tifffile.TiffFile(path) as tif:
-                check_tiff_structure(path, tif, limit, check_extent=False)
+            with images.quiet_decoder(), tifffile.TiffFile(path) as tif:
+                images.check_tiff_structure(path, tif, limit, check_extent=False)
         except InputError:
             raise
         except Exception:  # noqa: BLE001 - a maker's variant tifffile cannot parse; LibRaw decides
@@ -72,16 +59,16 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
     chatter: list[str] = []
 
     def describe(exc: Exception) -> str:
-        detail = last_decoder_line(chatter) or short_message(exc)
+        detail = images.last_decoder_line(chatter) or images.short_message(exc)
         # LibRaw's own allocation guard refuses sizes derived from damaged fields
         return "damaged size fields (the decoder refused to allocate for them)" if "memory" in detail.lower() \
             else detail
 
-    with decoder_errors(path, "unreadable camera raw file", describe):  # rawpy.LibRawError and friends
-        with quiet_decoder() as chatter, rawpy.imread(str(path)) as raw:
+    with images.decoder_errors(path, "unreadable camera raw file", describe):  # rawpy.LibRawError and friends
+        with images.quiet_decoder() as chatter, rawpy.imread(str(path)) as raw:
             sizes = raw.sizes
-            check_declared_size(path, sizes.raw_height, sizes.raw_width, 1, 2, limit)
-            check_declared_size(path, sizes.iheight, sizes.iwidth, 3, 2, limit)
+            images.check_declared_size(path, sizes.raw_height, sizes.raw_width, 1, 2, limit)
+            images.check_declared_size(path, sizes.iheight, sizes.iwidth, 3, 2, limit)
             desc = raw.color_desc.decode("ascii", "replace")
             if raw.num_colors < 3 or raw.raw_pattern is None or np.asarray(raw.raw_pattern).shape != (2, 2):
                 raise InputError(path, "not a 2x2 Bayer sensor; only Bayer raw files are supported")
@@ -90,7 +77,7 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
             planes = offsets = names = None
             if with_planes:
                 mosaic = np.asarray(raw.raw_image_visible)
-                if mosaic.ndim != 2 or mosaic.shape[0] < 2 * MIN_SIDE_PX or mosaic.shape[1] < 2 * MIN_SIDE_PX:
+                if mosaic.ndim != 2 or min(mosaic.shape) < 2 * images.MIN_SIDE_PX:
                     raise InputError(path, f"raw image of shape {mosaic.shape} is too small or not a mosaic")
                 # The colour of each site of the visible area (LibRaw's raw_pattern refers to
                 # the full sensor, whose margins may shift the cell by a row or column).
@@ -102,9 +89,9 @@ def read_raw(path: str | os.PathLike, *, max_pixels: int | None = None,
         raise InputError(path, f"white level {white} is not above the black level {float(np.max(black))}")
     frame = None
     if with_planes:
-        frame = RawFrame(planes, names, offsets, black, white, rgb, {})
+        frame = images.RawFrame(planes, names, offsets, black, white, rgb, {})
     meta = {"white_level": white, "black_level": [float(b) for b in black], "cfa": desc}
-    return LoadedImage(validate_image(rgb, path), path, "raw", meta, frame)
+    return images.LoadedImage(images.validate_image(rgb, path), path, "raw", meta, frame)
 
 
 def postprocess_linear(raw) -> np.ndarray:
