@@ -24,6 +24,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _harness import best_time, peak_rss_mb, record  # noqa: E402
 
 from napari_dslrxr.core.stages import deconvolution as dc
+from napari_dslrxr.core.stages import fourier
 from napari_dslrxr.core.stages import regularisation as rg
 from napari_dslrxr.core.psf import PSFModel  # noqa: E402
 
@@ -53,7 +54,7 @@ def blur_fft(img: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     pad = kernel.shape[0]
     p = np.pad(img, pad, mode="edge")
     shape = (sfft.next_fast_len(p.shape[0], real=True), sfft.next_fast_len(p.shape[1], real=True))
-    otf = dc.kernel_otf(kernel, shape)
+    otf = fourier.kernel_otf(kernel, shape)
     out = sfft.irfft2(sfft.rfft2(p, s=shape, workers=-1) * otf, s=shape, workers=-1)
     return out[pad:pad + img.shape[0], pad:pad + img.shape[1]].astype(np.float32)
 
@@ -102,7 +103,7 @@ def main() -> int:
     record("deconvolution", {
         "image": f"{WIDTH}x{HEIGHT} float32, one channel",
         "kernel_px": list(kernel.shape),
-        "padded_fft_shape": list(dc._padded_shape((HEIGHT, WIDTH), kernel.shape)),
+        "padded_fft_shape": list(fourier.padded_shape((HEIGHT, WIDTH), kernel.shape)),
         "adaptive_s": round(adaptive_s, 3),
         "wiener_s": round(wiener_s, 3),
         "rls_s": round(rls_s, 3),

@@ -48,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
 from napari_dslrxr.core.stages import deconvolution as dc
+from napari_dslrxr.core.stages import fourier
 from napari_dslrxr.core.stages import regularisation as rg
 from napari_dslrxr.core.io import read_image  # noqa: E402
 from napari_dslrxr.core.metrics import global_contrast_factor  # noqa: E402
@@ -189,10 +190,10 @@ def oracle_linear_bound(truth: np.ndarray, blurred: np.ndarray, noisy: np.ndarra
     radial_ps = np.maximum(sums[filled] / counts[filled], 1e-30)
     noise_var = float(np.mean(np.clip(blurred, 0, None)) / PEAK_COUNTS)
     k = dc.validate_kernel(kernel)
-    shape = dc._padded_shape(noisy.shape, k.shape)
+    shape = fourier.padded_shape(noisy.shape, k.shape)
     mean = float(noisy.mean())
-    y, (r0, c0) = dc.pad_and_taper(noisy.astype(np.float32), shape, mean)
-    otf = dc.kernel_otf(k, shape).astype(np.complex128)
+    y, (r0, c0) = fourier.pad_and_taper(noisy.astype(np.float32), shape, mean)
+    otf = fourier.kernel_otf(k, shape).astype(np.complex128)
     grid_radius = np.hypot(np.fft.fftfreq(shape[0])[:, None], np.fft.rfftfreq(shape[1])[None, :])
     signal_ps = np.interp(grid_radius, centres[filled], radial_ps)
     spectrum = np.conj(otf) * sfft.rfft2(y.astype(np.float64) - mean)

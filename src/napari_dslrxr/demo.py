@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     from .core.io import read_image, write_png, write_tiff
     from .core.params import PipelineParams, save_params
     from .core.simulation.phantom import make_dslr_radiograph
-    from .core.pipeline import run_file
+    from .core.files import run_file
 
     argv = sys.argv[1:] if argv is None else argv
     small = "--small" in argv  # a quick 384x576 run (tests)

@@ -71,12 +71,12 @@ def test_jobs_give_identical_outputs(tmp_path, inputs):
 def test_each_worker_prepares_the_flat_reference_once(tmp_path, inputs, monkeypatch):
     """--jobs > 1: a worker process reads the flats and darks for its first file only."""
     from napari_dslrxr._cli import pipeline as cli_pipeline
-    from napari_dslrxr.core import pipeline as core_pipeline
+    from napari_dslrxr.core import files as core_files
     from napari_dslrxr.core.params import params_to_dict
 
     reads = []
-    real_load = core_pipeline.load_frames
-    monkeypatch.setattr(core_pipeline, "load_frames", lambda paths: reads.append(list(paths)) or real_load(paths))
+    real_load = core_files.load_frames
+    monkeypatch.setattr(core_files, "load_frames", lambda paths: reads.append(list(paths)) or real_load(paths))
     monkeypatch.setattr(cli_pipeline, "_worker_references", None)
     cli_pipeline._init_worker()  # what the pool runs in each new worker process
     (tmp_path / "w").mkdir()

@@ -169,13 +169,13 @@ def test_a_worker_prepares_the_references_once_even_with_two_threads(tmp_path, s
     from distributed import LocalCluster
 
     from napari_dslrxr._cli import cluster as cli_cluster
-    from napari_dslrxr.core import pipeline as core_pipeline
+    from napari_dslrxr.core import files as core_files
     from napari_dslrxr.core import psf as core_psf
 
     psf = _psf_model(tmp_path)
     frame_reads, psf_reads = [], []
-    real_load_frames, real_load_psf = core_pipeline.load_frames, core_psf.load_psf
-    monkeypatch.setattr(core_pipeline, "load_frames", lambda paths: frame_reads.append(list(paths)) or real_load_frames(paths))
+    real_load_frames, real_load_psf = core_files.load_frames, core_psf.load_psf
+    monkeypatch.setattr(core_files, "load_frames", lambda paths: frame_reads.append(list(paths)) or real_load_frames(paths))
     monkeypatch.setattr(core_psf, "load_psf", lambda path: psf_reads.append(path) or real_load_psf(path))
     monkeypatch.setattr(cli_cluster, "_worker_references", {})
     monkeypatch.setattr(cli_cluster, "_prepared_sets", set())
@@ -200,12 +200,12 @@ def test_each_worker_process_prepares_the_references_at_most_once(tmp_path, smal
     # defined here so that dask sends it to the workers by value (they cannot import the tests)
     def _count_reference_reads() -> None:
         """In a worker process: count the reference frames and PSF models it reads from now on."""
-        from napari_dslrxr.core import pipeline as core_pipeline
+        from napari_dslrxr.core import files as core_files
         from napari_dslrxr.core import psf as core_psf
 
-        reads = core_pipeline.__dict__.setdefault("_test_reference_reads", [])
-        real_load_frames, real_load_psf = core_pipeline.load_frames, core_psf.load_psf
-        core_pipeline.load_frames = lambda paths: reads.append(tuple(paths)) or real_load_frames(paths)
+        reads = core_files.__dict__.setdefault("_test_reference_reads", [])
+        real_load_frames, real_load_psf = core_files.load_frames, core_psf.load_psf
+        core_files.load_frames = lambda paths: reads.append(tuple(paths)) or real_load_frames(paths)
         core_psf.load_psf = lambda path: reads.append(("psf", str(path))) or real_load_psf(path)
 
     psf = _psf_model(tmp_path)
@@ -220,7 +220,7 @@ def test_each_worker_process_prepares_the_references_at_most_once(tmp_path, smal
     with _external_cluster(tmp_path, 2) as (address, _, client):
         client.run(_count_reference_reads)
         run = _dslrxr("run", *map(str, inputs), *refs, "-o", str(tmp_path / "cluster"), "--scheduler", address)
-        reads = client.run(lambda: __import__("napari_dslrxr.core.pipeline", fromlist=["x"]).__dict__.get(
+        reads = client.run(lambda: __import__("napari_dslrxr.core.files", fromlist=["x"]).__dict__.get(
             "_test_reference_reads", []))
     assert run.returncode == 0, run.stderr
     expected = [(str(small_batch["flat"]),), (str(small_batch["dark"]),), ("psf", str(psf))]

@@ -96,6 +96,42 @@ def test_deconvolve_reads_the_deblur_section(data, tmp_path):
     assert not (tmp_path / "x.tif").exists()
 
 
+def test_reg_has_one_range_in_the_file_the_option_the_solver_and_the_widget_fields(data, tmp_path):
+    """The issue's example values: 1e-4 once passed the file and failed in the solver, 1e7 was
+    refused by the file and accepted on the command line. Now the field's one range decides for
+    the parameter file, the ``--reg`` option (through the process), the solver and the widget's
+    slider (whose limits are the field's metadata)."""
+    from napari_dslrxr.core.errors import ParameterError
+    from napari_dslrxr.core.param_fields import field_info
+    from napari_dslrxr.core.params import load_params
+    from napari_dslrxr.core.stages import deconvolution as dc
+
+    info = field_info(dc.DeconvolutionParams, "reg")
+    assert (info["min"], info["max"]) == (dc.REG_MIN, dc.REG_MAX)  # the widget's slider spans these
+    src = data["folder"]
+    base = ["deconvolve", src / "blurred.tif", "--kernel", src / "kernel.tif"]
+    image = tifffile.imread(src / "blurred.tif").astype(np.float32)
+    kernel = tifffile.imread(src / "kernel.tif")
+    params = tmp_path / "params.toml"
+    for value, accepted in ((1e-4, False), (1e-3, True), (1e7, True), (1e9, True), (1e10, False)):
+        assert (info["min"] <= value <= info["max"]) == accepted
+        params.write_text(f"[deblur]\nreg = {value!r}\n", encoding="utf-8")
+        if accepted:
+            load_params(params)
+            dc.deconvolve(image, kernel, method="rls", reg=value)
+            ok(*base, "-c", params, "-o", tmp_path / "from_file.tif")
+            ok(*base, "--reg", repr(value), "-o", tmp_path / "from_option.tif")
+            assert (tmp_path / "from_file.tif").read_bytes() == (tmp_path / "from_option.tif").read_bytes()
+        else:
+            with pytest.raises(ParameterError, match="deblur.reg"):
+                load_params(params)
+            with pytest.raises(ParameterError):
+                dc.deconvolve(image, kernel, method="rls", reg=value)
+            assert_same_refusal(params, f"[deblur]\nreg = {value!r}\n", base + ["-o", tmp_path / "x.tif"],
+                                base + ["--reg", repr(value), "-o", tmp_path / "x.tif"])
+    assert not (tmp_path / "x.tif").exists()
+
+
 @pytest.mark.slow
 def test_psf_fit_reads_the_psf_fit_section(data, tmp_path):
     base = ["psf", "fit", data["edges"]]

@@ -5,14 +5,26 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import tifffile
 
 from scenes import PHANTOM_SCENE_TOML
+from napari_dslrxr._cli.simulate import parse_effect_option
 from napari_dslrxr.cli import main
 from napari_dslrxr.core import io
+from napari_dslrxr.core.errors import ParameterError
 from napari_dslrxr.core.simulation.simulator import phantom_thickness_mm
 
 SCENE = PHANTOM_SCENE_TOML
+
+
+def test_effect_option_syntax():
+    name, params = parse_effect_option("heel_effect=0.05")
+    assert name == "heel_effect" and params["h1"] == 0.05 and params["h2"] == 0.0
+    name, params = parse_effect_option("mirror_ghost=epsilon:0.03,shift_mm:1.5")
+    assert params == {"epsilon": 0.03, "shift_mm": 1.5, "axis_deg": 0.0}
+    with pytest.raises(ParameterError, match="--effect 'mirror_ghost=epsilon'"):
+        parse_effect_option("mirror_ghost=epsilon")
 
 
 def _scene(tmp_path, size=96):
@@ -59,4 +71,4 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert main(["diagnose", str(scene), str(tmp_path / "small.tif"), "-o", str(tmp_path / "rep"),
                  "--binning", "half"]) == 2
     err = capsys.readouterr().err
-    assert "--binning must be 'auto' or an integer >= 1" in err and err.count("\n") == 1
+    assert "binning must be 'auto' or an integer >= 1" in err and err.count("\n") == 1

@@ -33,7 +33,8 @@ from napari_dslrxr._cli.view import plugin_widget_names, populate_viewer
 from napari_dslrxr._widgets import contrast as contrast_module
 from napari_dslrxr._widgets import deconvolution as deconvolution_module
 from napari_dslrxr._widgets import qc as qc_module
-from napari_dslrxr._widgets._common import EventLoopMonitor, viewer_camera
+from napari_dslrxr._widgets._jobs import EventLoopMonitor
+from napari_dslrxr._widgets._layers import viewer_camera
 from napari_dslrxr.core.psf.edge_images import MIN_ROI_PX
 from napari_dslrxr.core.errors import WorkCancelled
 from napari_dslrxr.core.io import write_tiff

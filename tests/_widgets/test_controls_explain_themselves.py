@@ -9,7 +9,7 @@ from magicgui.widgets import Container, FloatSlider, PushButton
 from magicgui.widgets.bases import ValueWidget
 
 from napari_dslrxr._cli.view import DOCK_WIDTH_PX, plugin_widget_names, populate_viewer
-from napari_dslrxr._widgets._common import param_tooltip
+from napari_dslrxr._widgets._controls import param_tooltip
 from napari_dslrxr.core.stages.contrast import ContrastParams
 from napari_dslrxr.core.stages.dynamic_range import DynamicRangeParams
 from napari_dslrxr.core.stages.impulse import ImpulseParams

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.signal import fftconvolve
 
-from napari_dslrxr._widgets._common import viewer_camera
+from napari_dslrxr._widgets._layers import viewer_camera
 from napari_dslrxr._widgets.deconvolution import DeconvolutionWidget
 
 pytestmark = pytest.mark.gui
@@ -52,6 +52,20 @@ def docked(make_napari_viewer, rng):
     widget._image.value = viewer.add_image(blurred, name="bars")
     widget._kernel_layer.value = viewer.add_image(kernel, name="kernel", visible=False)
     return viewer, widget, sharp, blurred
+
+
+def test_reg_slider_spans_the_parameter_range(docked):
+    """The slider's limits are the [deblur] reg field's range (the file's and the option's), so a
+    value the command line accepts (1e7, once refused by the file) can be set here too."""
+    from napari_dslrxr.core.param_fields import field_info
+    from napari_dslrxr.core.stages.deconvolution import DeconvolutionParams
+
+    _, widget, _, _ = docked
+    info = field_info(DeconvolutionParams, "reg")
+    assert (widget._reg.min, widget._reg.max) == (info["min"], info["max"])
+    for value in (info["min"], 1e7, info["max"]):
+        widget._reg.value = value
+        assert widget._reg.value == pytest.approx(value, rel=0.02)
 
 
 @pytest.mark.slow

@@ -22,7 +22,7 @@ def _core_modules() -> list[str]:
 
 def test_walk_reaches_the_nested_modules():
     modules = _core_modules()
-    for name in ("napari_dslrxr.core.io", "napari_dslrxr.core.io.image_files", "napari_dslrxr.core.stages.impulse",
+    for name in ("napari_dslrxr.core.io", "napari_dslrxr.core.io.readers", "napari_dslrxr.core.stages.impulse",
                  "napari_dslrxr.core.psf.edge_fit", "napari_dslrxr.core.simulation.simulator",
                  "napari_dslrxr.core.diagnosis.report", "napari_dslrxr.core.pipeline"):
         assert name in modules

@@ -68,7 +68,7 @@ def test_non_finite_and_huge_values_refused(data, message):
 
 
 def test_batch_section_accepts_local_and_addresses_and_never_changes_the_run_identity(tmp_path):
-    from napari_dslrxr.core.pipeline import run_identity
+    from napari_dslrxr.core.files import run_identity
 
     for value in ("", "local", "tcp://10.0.0.5:8786", "tls://sched.example.org:8786", "node12:8786"):
         assert params_from_dict({"batch": {"scheduler": value, "jobs": 4}}).batch.scheduler == value

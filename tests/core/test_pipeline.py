@@ -1,16 +1,12 @@
-"""The whole chain on synthetic DSLR frames: stages, progress, region, outputs, determinism."""
-
-import json
+"""The whole chain on synthetic DSLR frames: stages, progress, region, deblurring, display stages."""
 
 import cv2
 import numpy as np
 import pytest
 
-from napari_dslrxr.core.errors import InputError
-from napari_dslrxr.core.io import read_image, write_tiff
 from napari_dslrxr.core.params import PipelineParams
 from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
-from napari_dslrxr.core.pipeline import PIPELINE_STAGES, drive, process_frame, run_file, run_pipeline
+from napari_dslrxr.core.pipeline import PIPELINE_STAGES, drive, process_frame, run_pipeline
 
 
 @pytest.fixture(scope="module")
@@ -65,38 +61,6 @@ def test_flat_field_stage_matters(frames):
     assert np.std(with_flat[rim]) < 0.5 * np.std(no_flat[rim])
 
 
-def test_run_file_writes_outputs_sidecars_and_is_deterministic(tmp_path, frames):
-    inputs = tmp_path / "in"
-    inputs.mkdir()
-    raw = write_tiff(inputs / "shot.tif", frames.raw_rgb)
-    flat = write_tiff(inputs / "flat.tif", frames.flat)
-    dark = write_tiff(inputs / "dark.tif", frames.dark)
-    params = PipelineParams()
-    params.output.dicom = True
-    outs = []
-    for name in ("a", "b"):
-        out = tmp_path / name
-        out.mkdir()
-        written = run_file(raw, out, params=params, flat_paths=[flat], dark_paths=[dark])
-        assert sorted(p.name for p in written) == ["shot_dslrxr.dcm", "shot_dslrxr.png", "shot_dslrxr.tif"]
-        outs.append(written)
-    for a, b in zip(*outs, strict=True):
-        assert a.read_bytes() == b.read_bytes()
-        side = json.loads(a.with_name(a.name + ".json").read_text())
-        assert side["stage"] == "run" and len(side["inputs"]) == 3
-        assert set(side["timings_s"]) == set(PIPELINE_STAGES)
-        assert side["parameters"]["contrast"]["detail_contrast"] == params.contrast.detail_contrast
-    tif = read_image(outs[0][2]).data
-    assert tif.dtype == np.uint16 and tif.shape == frames.raw_rgb.shape[:2] and tif.max() > 60000
-
-
-def test_bad_reference_shape_is_one_line_error(tmp_path, frames):
-    raw = write_tiff(tmp_path / "shot.tif", frames.raw_rgb)
-    flat = write_tiff(tmp_path / "flat.tif", frames.flat[:100])
-    with pytest.raises(InputError, match=r"flat\.tif.*flat frame shape"):  # names the file
-        run_file(raw, tmp_path, flat_paths=[flat])
-
-
 def test_deblur_stage_runs_with_a_kernel(frames):
     small = make_dslr_radiograph((128, 160), seed=1)
     yy, xx = np.mgrid[-4:5, -4:5]
@@ -124,48 +88,14 @@ def test_deblur_stage_runs_with_a_kernel(frames):
     assert np.array_equal(again.display, result.display)
 
 
-def test_camera_raw_input_cleans_pulses_on_the_cfa_planes(tmp_path):
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from robustness.synthetic_files import write_dng
-
-    small = make_dslr_radiograph((192, 256), seed=7, pulse_rate=0.0)
-    green = small.raw_rgb[..., 1].astype(np.float64) - small.black_level
-    mosaic = np.clip(green / 4 + 64, 0, 4095).astype(np.uint16)  # 12-bit RGGB-like mosaic
-    rng = np.random.default_rng(0)
-    rows, cols = rng.integers(4, 188, 60), rng.integers(4, 252, 60)
-    mosaic[rows, cols] = 4000  # zingers
-    path = write_dng(tmp_path / "shot.dng", mosaic, black_counts=64, white_counts=4095)
-    written = run_file(path, tmp_path)
-    side = json.loads(written[0].with_name(written[0].name + ".json").read_text())
-    assert side["results"]["impulse"]["space"] == "cfa"
-    assert sum(side["results"]["impulse"]["pulse_pixels"].values()) >= 40
-
-
-def test_batch_prepares_the_flat_reference_once(tmp_path, frames):
-    shot = write_tiff(tmp_path / "shot.tif", frames.raw_rgb)
-    refs = dict(flat_paths=[write_tiff(tmp_path / "flat.tif", frames.flat)],
-                dark_paths=[write_tiff(tmp_path / "dark.tif", frames.dark)])
-    for name in ("a", "b", "plain"):
-        (tmp_path / name).mkdir()
-    cache: dict = {}
-    run_file(shot, tmp_path / "a", reference_cache=cache, **refs)
-    (prepared,) = cache.values()
-    reused = run_file(shot, tmp_path / "b", reference_cache=cache, **refs)
-    assert len(cache) == 1 and next(iter(cache.values())) is prepared
-    plain = run_file(shot, tmp_path / "plain", **refs)
-    assert reused[0].read_bytes() == plain[0].read_bytes()  # same output as preparing it afresh
-
-
 def test_contrast_widget_and_core_share_the_display_stages(frames):
     """The widget's render, the pipeline's stages v-vi and enhance_radiograph give the same bytes."""
     import dataclasses
 
     pytest.importorskip("magicgui")
     from napari_dslrxr._widgets.contrast import DISPLAY, LINEAR, PreparedInput, render
-    from napari_dslrxr.core.pipeline import apply_display_stages, enhance_radiograph
+    from napari_dslrxr.core.display import apply_display_stages
+    from napari_dslrxr.core.pipeline import enhance_radiograph
 
     params = PipelineParams()  # off-default sliders and a white outside, so every field is used
     params.region = dataclasses.replace(params.region, rectify=False)

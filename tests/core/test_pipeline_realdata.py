@@ -7,7 +7,8 @@ import pytest
 
 from napari_dslrxr.core.io import read_image
 from napari_dslrxr.core.params import PipelineParams
-from napari_dslrxr.core.pipeline import process_frame, run_file
+from napari_dslrxr.core.files import run_file
+from napari_dslrxr.core.pipeline import process_frame
 
 pytestmark = pytest.mark.realdata
 

@@ -47,8 +47,10 @@ def register(app: typer.Typer) -> None:
                                                       help=option_help("psf_fit", "outlier_sigma")),
     ) -> None:
         """Fit the source + detector blur model jointly to the edge radiographs in CONFIG."""
+        from functools import partial
+
         from ..core import io
-        from ..core.io import provenance
+        from ..core.files import write_output
         from ..core.params import load_section
         from ..core.psf import edge_fit
         from ..core.psf import save_psf
@@ -64,10 +66,9 @@ def register(app: typer.Typer) -> None:
                                    detector_core=cfg.detector_core, detector_tail=cfg.detector_tail,
                                    outlier_sigma=outlier_sigma or None)
         t_fit = time.perf_counter() - t0 - t_load
-        save_psf(model, output, inputs=inputs)
         report = model.fit_report
-        provenance.write_sidecar(
-            output, stage="psf fit",
+        write_output(
+            output, partial(save_psf, model, inputs=inputs), stage="psf fit",
             parameters={"config": str(config), "pixel_pitch_mm": cfg.pixel_pitch_mm,
                         "shape_power": cfg.shape_power, "detector_core": cfg.detector_core,
                         "detector_tail": cfg.detector_tail, "outlier_sigma": outlier_sigma,
@@ -91,7 +92,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Write the blur kernel of PSF at one geometry: float32, odd size, sums to 1."""
         from ..core import io
-        from ..core.io import provenance
+        from ..core.files import write_output
         from ..core.psf import load_psf
 
         t0 = time.perf_counter()
@@ -101,9 +102,8 @@ def register(app: typer.Typer) -> None:
         parameters = {"psf": str(psf), "source_to_object_mm": source_to_object_mm,
                       "source_to_detector_mm": source_to_detector_mm, "max_radius_px": max_radius_px,
                       "pixel_pitch_mm": model.pixel_pitch_mm}
-        io.write_tiff(output, kernel, description=json.dumps({"dslrxr": "psf kernel", **parameters}),
-                      inputs=[psf])
-        provenance.write_sidecar(output, stage="psf kernel", parameters=parameters, inputs=[psf],
-                                 timings_s={"kernel": time.perf_counter() - t0},
-                                 results={"shape": list(kernel.shape), "sum": float(kernel.sum(dtype=float))})
+        write_output(output, kernel, description=json.dumps({"dslrxr": "psf kernel", **parameters}),
+                     stage="psf kernel", parameters=parameters, inputs=[psf],
+                     timings_s={"kernel": time.perf_counter() - t0},
+                     results={"shape": list(kernel.shape), "sum": float(kernel.sum(dtype=float))})
         typer.echo(f"wrote {output} ({kernel.shape[0]}x{kernel.shape[1]} float32 kernel)")

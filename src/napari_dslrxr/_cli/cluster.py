@@ -1,6 +1,6 @@
 """``dslrxr run --scheduler``: the batch as one dask.distributed task per input file.
 
-The per-file work is :func:`napari_dslrxr.core.pipeline.run_file`, exactly as with ``--jobs``
+The per-file work is :func:`napari_dslrxr.core.files.run_file`, exactly as with ``--jobs``
 (same atomic writes and sidecars, so the outputs have the same bytes). Each worker process
 prepares the flat/dark reference and the PSF kernel from the reference files once, with its
 first file, and keeps them in its ``reference_cache`` for its later files, as the process pool's
@@ -66,7 +66,7 @@ def import_distributed():
 def _reference_set(job: dict) -> tuple:
     """What a job's prepared references depend on: the same tuple, the same references."""
     from ..core.params import params_from_dict
-    from ..core.pipeline import input_black_level
+    from ..core.files import input_black_level
 
     params = params_from_dict(job["params"])
     return (tuple(job["flats"]), tuple(job["darks"]), job["psf"], job["sod"], job["sdd"],
@@ -74,14 +74,14 @@ def _reference_set(job: dict) -> tuple:
 
 
 def _run_on_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
-    """The task of one file: :func:`_process_one` with this worker's prepared references."""
-    from .pipeline import _process_one
+    """The task of one file: :func:`~.file_job.process_one` with this worker's prepared references."""
+    from .file_job import process_one
 
     key = _reference_set(job)
     if key in _prepared_sets:
-        return _process_one(job, _worker_references)
+        return process_one(job, _worker_references)
     with _first_file_lock:  # the first file of a reference set prepares it, once per worker
-        outcome = _process_one(job, _worker_references)
+        outcome = process_one(job, _worker_references)
         if outcome[1]:
             _prepared_sets.add(key)
     return outcome

@@ -48,6 +48,35 @@ def read_kernel_tiff(path: Path):
     return kernel
 
 
+def blur_kernel(psf: Path | None, kernel: Path | None, source_to_object_mm: float | None,
+                source_to_detector_mm: float | None, inputs: list, parameters: dict):
+    """The kernel ``--psf`` (at the two distances) or ``--kernel`` gives; its file is appended
+    to ``inputs`` and its options recorded in ``parameters``."""
+    from ..core.errors import ParameterError
+    from ..core.psf import load_psf
+    from ..core.stages.deconvolution import validate_kernel
+
+    if (psf is None) == (kernel is None):
+        raise ParameterError("give either --psf (with both distances) or --kernel, not both or neither")
+    if kernel is not None:
+        if source_to_object_mm is not None or source_to_detector_mm is not None:
+            raise ParameterError("the distances go with --psf, not with --kernel")
+        inputs.append(kernel)
+        parameters["kernel"] = str(kernel)
+        return read_kernel_tiff(kernel)
+    if source_to_object_mm is None or source_to_detector_mm is None:
+        raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
+    if not 0 < source_to_object_mm <= source_to_detector_mm:
+        raise ParameterError("need 0 < --source-to-object-mm <= --source-to-detector-mm, "
+                             f"got {source_to_object_mm:g} and {source_to_detector_mm:g}")
+    model = load_psf(psf)
+    kern = validate_kernel(model.kernel(source_to_object_mm, source_to_detector_mm), str(psf))
+    inputs.append(psf)
+    parameters.update(psf=str(psf), source_to_object_mm=source_to_object_mm,
+                      source_to_detector_mm=source_to_detector_mm)
+    return kern
+
+
 def register(app: typer.Typer) -> None:
     """Add the ``deconvolve`` command to ``app``."""
 
@@ -69,39 +98,17 @@ def register(app: typer.Typer) -> None:
 
         from ..core.stages import deconvolution as dc
         from ..core.stages.regularisation import choose_regularisation
-        from ..core.errors import ParameterError
-        from ..core.io import read_image, write_tiff
-        from ..core.io.provenance import write_sidecar
-        from ..core.psf import load_psf
-        from .common import ensure_parent
-
+        from ..core.files import write_output
+        from ..core.io import read_image
         from ..core.params import load_section
+        from .common import ensure_parent
 
         settings = load_section(config, "deblur", method=method,
                                 reg=None if reg is None else dc.check_reg(reg))
         method, reg_value = settings.method, settings.reg
-        if (psf is None) == (kernel is None):
-            raise ParameterError("give either --psf (with both distances) or --kernel, not both or neither")
         inputs = [input_path] + ([config] if config is not None else [])
         parameters: dict = {"method": method, "reg": reg_value}
-        if psf is not None:
-            if source_to_object_mm is None or source_to_detector_mm is None:
-                raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
-            if not 0 < source_to_object_mm <= source_to_detector_mm:
-                raise ParameterError(
-                    "need 0 < --source-to-object-mm <= --source-to-detector-mm, "
-                    f"got {source_to_object_mm:g} and {source_to_detector_mm:g}")
-            model = load_psf(psf)
-            kern = dc.validate_kernel(model.kernel(source_to_object_mm, source_to_detector_mm), str(psf))
-            inputs.append(psf)
-            parameters.update(psf=str(psf), source_to_object_mm=source_to_object_mm,
-                              source_to_detector_mm=source_to_detector_mm)
-        else:
-            if source_to_object_mm is not None or source_to_detector_mm is not None:
-                raise ParameterError("the distances go with --psf, not with --kernel")
-            kern = read_kernel_tiff(kernel)
-            inputs.append(kernel)
-            parameters["kernel"] = str(kernel)
+        kern = blur_kernel(psf, kernel, source_to_object_mm, source_to_detector_mm, inputs, parameters)
 
         t0 = time.perf_counter()
         image = read_image(input_path).data
@@ -119,11 +126,11 @@ def register(app: typer.Typer) -> None:
         ensure_parent(output)
         description = (f"dslrxr deconvolve: method={method} reg={reg_used:.6g}"
                        f"{' (auto)' if reg_value == 'auto' else ''}; float32, linear, input units")
-        write_tiff(output, result.astype(np.float32, copy=False), description=description, inputs=inputs)
-        write_sidecar(output, stage="deconvolve", parameters=parameters, inputs=inputs,
-                      timings_s={"read": t_read, "auto_reg": t_auto, "deconvolve": t_deconv},
-                      results={"reg_used": reg_used, "reg_was_auto": reg_value == "auto",
-                               **({"auto": auto.as_dict()} if auto is not None else {}),
-                               "kernel_shape": list(kern.shape), "output_dtype": "float32"})
+        write_output(output, result.astype(np.float32, copy=False), description=description, stage="deconvolve",
+                     parameters=parameters, inputs=inputs,
+                     timings_s={"read": t_read, "auto_reg": t_auto, "deconvolve": t_deconv},
+                     results={"reg_used": reg_used, "reg_was_auto": reg_value == "auto",
+                              **({"auto": auto.as_dict()} if auto is not None else {}),
+                              "kernel_shape": list(kern.shape), "output_dtype": "float32"})
         typer.echo(f"{output}: {method} deconvolution, reg {reg_used:.4g}"
                    f"{' (auto)' if reg_value == 'auto' else ''}, kernel {kern.shape[0]}x{kern.shape[1]}")

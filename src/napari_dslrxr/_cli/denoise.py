@@ -60,18 +60,14 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
                  min_contrast: float | None = None) -> dict:
     """Run impulse removal on one file and write the outputs; return the sidecar results."""
     import dataclasses
+    from functools import partial
 
     import numpy as np
 
     from ..core.errors import ParameterError
-    from ..core.stages.impulse import (
-        cfa_mask_to_mosaic,
-        demosaic_cleaned_raw,
-        remove_impulses,
-        remove_impulses_cfa,
-    )
+    from ..core.stages.impulse import cfa_mask_to_mosaic, clean_raw_frame, remove_impulses
+    from ..core.files import write_output
     from ..core.io import check_not_an_input, read_image, write_tiff
-    from ..core.io.provenance import write_sidecar
     from .common import ensure_parent
 
     params = impulse_params(config, passes=passes, space=space, spots=spots, window_px=window_px,
@@ -91,8 +87,7 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
     if used_space == "cfa":
         if not is_raw:
             raise ParameterError(f"--space cfa needs a camera raw input; {input_path} is {loaded.format}")
-        result = remove_impulses_cfa(loaded.raw.cfa_planes, params)
-        image = demosaic_cleaned_raw(input_path, result.image, loaded.raw)
+        image, result = clean_raw_frame(loaded, params)
         mask = cfa_mask_to_mosaic(result.masks, loaded.raw.plane_offsets, image.shape[:2])
     else:
         result = remove_impulses(loaded.data, dataclasses.replace(params, space=used_space))
@@ -103,14 +98,14 @@ def denoise_file(input_path: Path, output: Path, *, passes: str | None = None, s
     parameters = {**dataclasses.asdict(params), "space": used_space, "space_requested": space}
     timings = {"read": t_read, "denoise": t_denoise}
     ensure_parent(output)
-    write_tiff(output, image, inputs=[input_path])
-    write_sidecar(output, stage="denoise", parameters=parameters, inputs=[input_path],
-                  timings_s=timings, results=results)
+    write_output(output, image, stage="denoise", parameters=parameters, inputs=[input_path],
+                 timings_s=timings, results=results)
     if mask_out is not None:
         ensure_parent(mask_out)
-        write_tiff(mask_out, np.where(mask, 255, 0).astype(np.uint8), inputs=[input_path, output])
-        write_sidecar(mask_out, stage="denoise-mask", parameters=parameters, inputs=[input_path],
-                      timings_s=timings, results=results)
+        # the mask must not overwrite the cleaned output either; its sidecar names the input only
+        write_mask = partial(write_tiff, data=np.where(mask, 255, 0).astype(np.uint8), inputs=[input_path, output])
+        write_output(mask_out, write_mask, stage="denoise-mask", parameters=parameters, inputs=[input_path],
+                     timings_s=timings, results=results)
     return results
 
 

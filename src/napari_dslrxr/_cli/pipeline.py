@@ -3,51 +3,13 @@
 from __future__ import annotations
 
 import sys
-import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import typer
 
-from ..core.errors import DslrxrError, ParameterError
-
-
-def _run_warnings(written: list) -> list[str]:
-    """The warnings a run recorded in its sidecar (stages skipped or guessed)."""
-    import json
-
-    from ..core.io.provenance import sidecar_path
-
-    for path in written:
-        try:
-            return list(json.loads(sidecar_path(path).read_text(encoding="utf-8"))["results"].get("warnings", []))
-        except (OSError, ValueError, KeyError, TypeError):
-            continue
-    return []
-
-
-def _process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, bool, str, float, list[str]]:
-    """Worker: run one input; returns (input, ok, message, seconds, warnings). Picklable for processes.
-
-    ``reference_cache`` (sequential runs) keeps the prepared flat reference between files.
-    """
-    from ..core.params import params_from_dict
-    from ..core.pipeline import run_file
-
-    t0 = time.perf_counter()
-    try:
-        params = params_from_dict(job["params"])
-        written = run_file(job["input"], job["out_dir"], params=params, flat_paths=job["flats"],
-                           dark_paths=job["darks"], psf_path=job["psf"],
-                           source_to_object_mm=job["sod"], source_to_detector_mm=job["sdd"],
-                           patient=job["patient"], reference_cache=reference_cache,
-                           warn=lambda line: print(f"dslrxr: {job['input']}: {line}", file=sys.stderr))
-        return (job["input"], True, f"wrote {len(written)} file(s)", time.perf_counter() - t0,
-                _run_warnings(written))
-    except DslrxrError as exc:
-        return job["input"], False, str(exc), time.perf_counter() - t0, []
-    except MemoryError:
-        return job["input"], False, "out of memory", time.perf_counter() - t0, []
+from ..core.errors import ParameterError
+from .file_job import process_one
 
 
 #: Flat references prepared in this worker process (``--jobs > 1``): each worker reads and prepares
@@ -61,7 +23,7 @@ def _init_worker() -> None:
 
 
 def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
-    return _process_one(job, _worker_references)
+    return process_one(job, _worker_references)
 
 
 def _expand_inputs(inputs: list[Path]) -> list[Path]:
@@ -75,6 +37,86 @@ def _expand_inputs(inputs: list[Path]) -> list[Path]:
         else:
             files.append(item)
     return files
+
+
+def _run_params(config: Path | None, *, dicom: bool | None, scheduler: str | None, jobs: int | None):
+    """The parameter file (defaults without one) with the command line's options on top, checked
+    as the file's values are."""
+    from ..core.params import PipelineParams, load_params, validate_params
+
+    params = load_params(config) if config is not None else PipelineParams()
+    if dicom is not None:
+        params.output.dicom = dicom
+    if scheduler is not None:
+        params.batch.scheduler = scheduler
+    if jobs is not None:
+        params.batch.jobs = jobs
+    return validate_params(params)  # an option's value gets the parameter file's checks
+
+
+def _plan_jobs(files: list[Path], out: Path, params, request: dict, *, overwrite: bool) -> list[dict]:
+    """One job per input whose finished outputs do not match a rerun (all of them with
+    ``overwrite``); says on stderr which files are skipped and why others are redone."""
+    from ..core.params import params_to_dict
+    from ..core.rerun import check_finished
+
+    todo, skipped, redo = [], 0, {}
+    checksums: dict = {}  # reference files are hashed once for the whole batch
+    for f in files:
+        if not overwrite:
+            check = check_finished(f, out, params, checksums=checksums, **request)
+            if check.done:
+                skipped += 1
+                continue
+            if not check.new:
+                redo.setdefault(check.reason, []).append(f.name)
+        todo.append({"input": str(f), "out_dir": str(out), "params": params_to_dict(params),
+                     "flats": [str(p) for p in request["flat_paths"]], "darks": [str(p) for p in request["dark_paths"]],
+                     "psf": str(request["psf_path"]) if request["psf_path"] else None,
+                     "sod": request["source_to_object_mm"], "sdd": request["source_to_detector_mm"],
+                     "patient": request["patient"]})
+    if skipped:
+        print(f"dslrxr: skipped {skipped} file(s): their finished outputs match the inputs, parameters "
+              "and version (use --overwrite to redo)", file=sys.stderr)
+    for reason, names in redo.items():
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        print(f"dslrxr: redoing {shown}: {reason}", file=sys.stderr)
+    return todo
+
+
+def _run_jobs(todo: list[dict], params) -> int:
+    """Run the jobs (one after the other, in a process pool, or on dask.distributed) and report
+    each on stderr as it finishes; return how many failed."""
+    failed = 0
+    total = len(todo)
+
+    def report(i: int, outcome: tuple[str, bool, str, float, list[str]]) -> None:
+        nonlocal failed
+        name, ok, message, seconds, warnings = outcome
+        for warning in warnings:  # a stage skipped or guessed: one line each
+            print(f"dslrxr: warning: {name}: {warning}", file=sys.stderr)
+        if ok:
+            print(f"[{i}/{total}] {name}: {message} ({seconds:.1f} s)", file=sys.stderr)
+        else:
+            failed += 1
+            text = " ".join(message.split())
+            text = text if text.startswith(name) else f"{name}: {text}"
+            print(f"[{i}/{total}] dslrxr: error: {text}", file=sys.stderr)
+
+    scheduler, jobs = params.batch.scheduler, params.batch.jobs
+    if scheduler and total:
+        from .cluster import run_on_cluster
+
+        run_on_cluster(todo, scheduler=scheduler, n_workers=jobs, report=report)
+    elif jobs > 1 and total > 1:
+        with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool:
+            for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
+                report(i, outcome)
+    else:
+        cache: dict = {}  # flats and darks are read and prepared once for the batch
+        for i, job in enumerate(todo, start=1):
+            report(i, process_one(job, cache))
+    return failed
 
 
 def register(app: typer.Typer) -> None:
@@ -108,19 +150,8 @@ def register(app: typer.Typer) -> None:
         A file is skipped only when its finished outputs' sidecars record the same input
         checksums, parameters and version; otherwise it is processed again.
         """
-        from ..core.params import PipelineParams, load_params, params_to_dict, validate_params
-        from ..core.rerun import check_finished
-
-        params = load_params(config) if config is not None else PipelineParams()
-        if dicom is not None:
-            params.output.dicom = dicom
-        if scheduler is not None:
-            params.batch.scheduler = scheduler
-        if jobs is not None:
-            params.batch.jobs = jobs
-        params = validate_params(params)  # an option's value gets the parameter file's checks
-        scheduler, jobs = params.batch.scheduler, params.batch.jobs
-        if scheduler:
+        params = _run_params(config, dicom=dicom, scheduler=scheduler, jobs=jobs)
+        if params.batch.scheduler:
             from .cluster import import_distributed
 
             import_distributed()  # says how to install it before any work is done
@@ -132,65 +163,18 @@ def register(app: typer.Typer) -> None:
         files = _expand_inputs(inputs)
         if not files:
             raise ParameterError("no input files found")
-        if scheduler not in ("", "local"):
+        if params.batch.scheduler not in ("", "local"):
             # workers elsewhere do not share this working folder: give them absolute names
             files, flat, dark = [f.absolute() for f in files], [p.absolute() for p in flat], [p.absolute() for p in dark]
             psf, out = (psf.absolute() if psf else None), out.absolute()
         out.mkdir(parents=True, exist_ok=True)
-        patient = {k: v for k, v in (("PatientName", patient_name), ("PatientID", patient_id)) if v}
-        todo, skipped, redo = [], 0, {}
-        checksums: dict = {}  # reference files are hashed once for the whole batch
-        for f in files:
-            if not overwrite:
-                check = check_finished(f, out, params, flat_paths=flat, dark_paths=dark, psf_path=psf,
-                                       source_to_object_mm=source_to_object_mm,
-                                       source_to_detector_mm=source_to_detector_mm, patient=patient,
-                                       checksums=checksums)
-                if check.done:
-                    skipped += 1
-                    continue
-                if not check.new:
-                    redo.setdefault(check.reason, []).append(f.name)
-            todo.append({"input": str(f), "out_dir": str(out), "params": params_to_dict(params),
-                         "flats": [str(p) for p in flat], "darks": [str(p) for p in dark],
-                         "psf": str(psf) if psf else None, "sod": source_to_object_mm,
-                         "sdd": source_to_detector_mm, "patient": patient})
-        if skipped:
-            print(f"dslrxr: skipped {skipped} file(s): their finished outputs match the inputs, parameters "
-                  "and version (use --overwrite to redo)", file=sys.stderr)
-        for reason, names in redo.items():
-            shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
-            print(f"dslrxr: redoing {shown}: {reason}", file=sys.stderr)
-        failed = 0
-        total = len(todo)
-
-        def report(i: int, outcome: tuple[str, bool, str, float, list[str]]) -> None:
-            nonlocal failed
-            name, ok, message, seconds, warnings = outcome
-            for warning in warnings:  # a stage skipped or guessed: one line each
-                print(f"dslrxr: warning: {name}: {warning}", file=sys.stderr)
-            if ok:
-                print(f"[{i}/{total}] {name}: {message} ({seconds:.1f} s)", file=sys.stderr)
-            else:
-                failed += 1
-                text = " ".join(message.split())
-                text = text if text.startswith(name) else f"{name}: {text}"
-                print(f"[{i}/{total}] dslrxr: error: {text}", file=sys.stderr)
-
-        if scheduler and total:
-            from .cluster import run_on_cluster
-
-            run_on_cluster(todo, scheduler=scheduler, n_workers=jobs, report=report)
-        elif jobs > 1 and total > 1:
-            with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool:
-                for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
-                    report(i, outcome)
-        else:
-            cache: dict = {}  # flats and darks are read and prepared once for the batch
-            for i, job in enumerate(todo, start=1):
-                report(i, _process_one(job, cache))
+        request = {"flat_paths": flat, "dark_paths": dark, "psf_path": psf, "source_to_object_mm": source_to_object_mm,
+                   "source_to_detector_mm": source_to_detector_mm,
+                   "patient": {k: v for k, v in (("PatientName", patient_name), ("PatientID", patient_id)) if v}}
+        todo = _plan_jobs(files, out, params, request, overwrite=overwrite)
+        failed = _run_jobs(todo, params)
         if failed:
-            print(f"dslrxr: {failed} of {total} file(s) failed", file=sys.stderr)
+            print(f"dslrxr: {failed} of {len(todo)} file(s) failed", file=sys.stderr)
             raise typer.Exit(1)
         return 0
 

@@ -19,6 +19,33 @@ import typer
 from .common import option_help
 
 
+def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
+    """Parse ``NAME=VALUE`` (main amplitude) or ``NAME=k1:v1,k2:v2`` into ``(name, params)``."""
+    from ..core.errors import ParameterError
+    from ..core.simulation.physics_terms import get_term, validate_params
+
+    if "=" not in text:
+        raise ParameterError(f"--effect {text!r}: expected NAME=VALUE or NAME=key:value,key:value")
+    name, _, value = text.partition("=")
+    term = get_term(name.strip())
+    value = value.strip()
+    if ":" not in value:
+        try:
+            return term.name, validate_params(term, {term.main: float(value)})
+        except ValueError:
+            raise ParameterError(f"--effect {text!r}: {value!r} is not a number") from None
+    params = {}
+    for part in value.split(","):
+        key, sep, val = part.partition(":")
+        if not sep:
+            raise ParameterError(f"--effect {text!r}: expected key:value pairs separated by commas")
+        try:
+            params[key.strip()] = float(val)
+        except ValueError:
+            raise ParameterError(f"--effect {text!r}: {val!r} is not a number") from None
+    return term.name, validate_params(term, params)
+
+
 def register(app: typer.Typer) -> None:
     """Add ``simulate`` and ``diagnose`` to ``app``."""
 
@@ -32,20 +59,19 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Simulate a recording of the scene through the imaging chain."""
         from ..core import io
-        from ..core.io import provenance
+        from ..core.files import write_output
         from ..core.simulation import simulator
 
         t0 = time.perf_counter()
         sc = simulator.load_scene(scene)
-        effects = dict(simulator.parse_effect_option(text) for text in (effect or []))
+        effects = dict(parse_effect_option(text) for text in (effect or []))
         inputs = [scene] + ([sc.thickness_path] if sc.thickness_path else [])
         io.check_not_an_input(output, inputs)
         recording, truth = simulator.simulate_recording(sc, effects=effects, seed=seed)
-        io.write_tiff(output, recording, description="dslrxr simulate", inputs=inputs)
-        provenance.write_sidecar(output, stage="simulate",
-                                 parameters={"scene": str(scene), "effects": truth["effects"], "seed": seed},
-                                 inputs=inputs, timings_s={"simulate": time.perf_counter() - t0},
-                                 results={"pulse_pixels": int(truth["pulse_mask"].sum())})
+        write_output(output, recording, description="dslrxr simulate", stage="simulate",
+                     parameters={"scene": str(scene), "effects": truth["effects"], "seed": seed},
+                     inputs=inputs, timings_s={"simulate": time.perf_counter() - t0},
+                     results={"pulse_pixels": int(truth["pulse_mask"].sum())})
         typer.echo(f"wrote {output} ({recording.shape[0]}x{recording.shape[1]}, "
                    f"effects: {', '.join(truth['effects']) or 'none'})")
 

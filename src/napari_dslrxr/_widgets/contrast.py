@@ -2,7 +2,7 @@
 
 Wraps the display stages of the core, as :func:`napari_dslrxr.core.pipeline.enhance_radiograph`
 chains them: value-of-interest scaling, then
-:func:`~napari_dslrxr.core.pipeline.apply_display_stages` (:mod:`~napari_dslrxr.core.stages.dynamic_range`
+:func:`~napari_dslrxr.core.display.apply_display_stages` (:mod:`~napari_dslrxr.core.stages.dynamic_range`
 latitude reduction, :mod:`~napari_dslrxr.core.stages.contrast` MUSICA-style multiscale contrast and the
 sigmoid display curve). The value-of-interest scaling does not depend on the sliders, so it is done
 once per input and cached; a slider move runs only the three later stages. Two kinds of input:
@@ -34,11 +34,13 @@ from magicgui.widgets import CheckBox, ComboBox, Container, FloatSlider, PushBut
 from ..core.errors import ParameterError
 from ..core.io.input_kind import InputKind, decide_input_kind
 from ..core.params import PipelineParams
-from ..core.pipeline import apply_display_stages, process_frame, scale_display_radiograph
+from ..core.display import apply_display_stages, scale_display_radiograph
+from ..core.pipeline import process_frame
 from ..core.stages.contrast import ContrastParams
 from ..core.stages.dynamic_range import DynamicRangeParams
-from ._common import (JobPanel, LivePreviewMixin, debounced, guarded, param_widget, readout_label,
-                      restore_defaults_button, run_in_worker, show_layer)
+from ._controls import param_widget, restore_defaults_button
+from ._jobs import JobPanel, guarded, readout_label, run_in_worker
+from ._layers import LivePreviewMixin, debounced, show_layer
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -80,7 +82,7 @@ def prepare_input(data: np.ndarray, kind: str, max_pixels: int, params: Pipeline
     through the core pipeline with impulse removal, flat field, dynamic range and contrast
     switched off (no black level subtracted: the layer is taken as counts above black), giving
     the VOI-scaled attenuation and the screen mask. A display radiograph is VOI-scaled inside
-    its collimated field by :func:`~napari_dslrxr.core.pipeline.scale_display_radiograph`, as
+    its collimated field by :func:`~napari_dslrxr.core.display.scale_display_radiograph`, as
     :func:`~napari_dslrxr.core.pipeline.enhance_radiograph` does (the mask; None when no blade
     is found).
     """
@@ -116,7 +118,7 @@ def render(prepared: PreparedInput | None, data: np.ndarray, kind: str, params: 
     """Worker job: prepare the input if needed, then the core display stages on it.
 
     The stages after value-of-interest scaling, exactly as the pipeline runs them
-    (:func:`~napari_dslrxr.core.pipeline.apply_display_stages`): latitude reduction,
+    (:func:`~napari_dslrxr.core.display.apply_display_stages`): latitude reduction,
     multiscale contrast and the display curve; outside the screen region is black (or
     white), as in the pipeline's output. Also returns the display report (the share of the
     anatomy clipped, as the pipeline's sidecar records it).

@@ -26,9 +26,9 @@ from ..core.errors import ParameterError
 from ..core.param_fields import field_info
 from ..core.params import DeblurParams
 from ..core.psf import load_psf
-from ._common import (JobPanel, LivePreviewMixin, debounced, guarded, notify_info, param_tooltip, param_widget,
-                      readout_label, restore_defaults_button, robust_limits, run_in_worker, show_layer,
-                      viewer_camera, visible_region)
+from ._controls import param_tooltip, param_widget, restore_defaults_button
+from ._jobs import JobPanel, guarded, notify_info, readout_label, run_in_worker
+from ._layers import LivePreviewMixin, debounced, robust_limits, show_layer, viewer_camera, visible_region
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:

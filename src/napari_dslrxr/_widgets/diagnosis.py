@@ -26,8 +26,9 @@ from ..core.diagnosis import DiagnosisOptions, DiagnosisResult, diagnose_scene, 
 from ..core.errors import ParameterError
 from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
-from ._common import (JobPanel, ReportButtonsMixin, guarded, param_widget, readout_label, remove_layer,
-                      reset_choices, restore_defaults_button, run_in_worker, show_layer, single_channel_layers)
+from ._controls import param_widget, restore_defaults_button
+from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker
+from ._layers import remove_layer, reset_choices, show_layer, single_channel_layers
 
 if TYPE_CHECKING:
     import napari

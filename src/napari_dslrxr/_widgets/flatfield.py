@@ -19,8 +19,9 @@ from magicgui.widgets import CheckBox, Container, FileEdit, PushButton, create_w
 from ..core.errors import ParameterError
 from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
 from ..core.io import read_image
-from ._common import (JobPanel, debounced, guarded, notify_error, param_widget, readout_label, remove_layer,
-                      restore_defaults_button, robust_limits, run_in_worker, same_geometry, show_layer)
+from ._controls import param_widget, restore_defaults_button
+from ._jobs import JobPanel, guarded, notify_error, readout_label, run_in_worker
+from ._layers import debounced, remove_layer, robust_limits, same_geometry, show_layer
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:

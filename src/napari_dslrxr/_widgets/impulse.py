@@ -17,8 +17,9 @@ from magicgui.widgets import ComboBox, Container, PushButton, create_widget
 
 from ..core.errors import ParameterError
 from ..core.stages.impulse import ImpulseParams, ImpulseResult, remove_impulses
-from ._common import (JobPanel, guarded, param_widget, readout_label, restore_defaults_button, robust_limits,
-                      run_in_worker, same_geometry, show_layer)
+from ._controls import param_widget, restore_defaults_button
+from ._jobs import JobPanel, guarded, readout_label, run_in_worker
+from ._layers import robust_limits, same_geometry, show_layer
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:

@@ -18,7 +18,7 @@ from magicgui.widgets import Container, FileEdit, PushButton
 
 from ..core.errors import ParameterError
 from ..core.params import PipelineParams, load_params, save_params, validate_params
-from ._common import guarded, notify_info, readout_label
+from ._jobs import guarded, notify_info, readout_label
 from ._registry import stage_widgets
 
 if TYPE_CHECKING:

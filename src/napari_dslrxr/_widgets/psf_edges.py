@@ -24,8 +24,9 @@ from ..core.psf.edge_images import MIN_ROI_PX
 from ..core.psf.fit_params import EdgeFitSettings
 from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
-from ._common import (JobPanel, guarded, notify_info, param_tooltip, param_widget, readout_label,
-                      restore_defaults_button, run_in_worker, show_layer)
+from ._controls import param_tooltip, param_widget, restore_defaults_button
+from ._jobs import JobPanel, guarded, notify_info, readout_label, run_in_worker
+from ._layers import show_layer
 
 if TYPE_CHECKING:
     import napari

@@ -21,8 +21,9 @@ from magicgui.widgets import ComboBox, Container, FileEdit, PushButton, Select
 
 from ..core.errors import ParameterError
 from ..core.qc import DetectorQuality, QcParams, measure_detector_quality, write_qc_outputs
-from ._common import (JobPanel, ReportButtonsMixin, guarded, param_widget, readout_label, reset_choices,
-                      restore_defaults_button, run_in_worker, single_channel_layers)
+from ._controls import param_widget, restore_defaults_button
+from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker
+from ._layers import reset_choices, single_channel_layers
 from .psf_edges import edge_roi_layer, rectangles_to_rois, roi_layer_name
 
 if TYPE_CHECKING:

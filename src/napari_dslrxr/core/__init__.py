@@ -5,7 +5,11 @@ Nothing in this package imports Qt or napari; every stage is usable from scripts
 Where things are (data flows down this list; nothing imports a module above it):
 
 * :mod:`.rerun` - whether a file's finished outputs match a rerun (``dslrxr run`` skips or redoes it);
-* :mod:`.pipeline` - the whole pipeline over a frame or a file (``dslrxr run``);
+* :mod:`.files` - file in, outputs and sidecar out: the one place (``dslrxr run`` per file, and the
+  output + sidecar of every command);
+* :mod:`.pipeline` - the whole pipeline over a frame: the stages in order;
+* :mod:`.display` - the display end of the chain (VOI scaling, dynamic range, contrast, display
+  curve), shared by the pipeline, the display-radiograph path and the contrast widget;
 * :mod:`.params` - the pipeline parameters, one dataclass per TOML section, and the TOML file;
 * :mod:`.stages` - the pipeline stages: impulse removal, flat field, region (screen, collimation,
   VOI), deconvolution, dynamic range, multiscale contrast;
@@ -43,9 +47,10 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "metrics": ("global_contrast_factor", "percentage_error"),
     "params": ("BatchParams", "DeblurParams", "OutputParams", "PipelineParams", "default_params_toml", "load_params",
         "params_from_dict", "params_to_dict", "params_to_toml", "save_params", "validate_params"),
-    "pipeline": ("PIPELINE_STAGES", "PipelineResult", "apply_display_stages", "enhance_radiograph",
-        "prepare_batch_references", "process_display_radiograph", "process_frame", "run_display_pipeline",
-        "run_file", "run_pipeline", "scale_display_radiograph"),
+    "pipeline": ("PIPELINE_STAGES", "PipelineResult", "enhance_radiograph", "process_display_radiograph",
+        "process_frame", "run_display_pipeline", "run_pipeline"),
+    "display": ("apply_display_stages", "scale_display_radiograph"),
+    "files": ("run_file", "write_output"),
     "rerun": ("RerunCheck", "check_finished"),
 }
 

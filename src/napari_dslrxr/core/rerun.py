@@ -92,12 +92,12 @@ def check_finished(input_path: str | os.PathLike, out_dir: str | os.PathLike, pa
                    psf_path: str | os.PathLike | None = None, source_to_object_mm: float | None = None,
                    source_to_detector_mm: float | None = None, patient: dict | None = None,
                    checksums: dict | None = None) -> RerunCheck:
-    """Decide whether :func:`~napari_dslrxr.core.pipeline.run_file` would write what is already there.
+    """Decide whether :func:`~napari_dslrxr.core.files.run_file` would write what is already there.
 
     Parameters
     ----------
     input_path, out_dir, params, flat_paths, dark_paths, psf_path, source_to_object_mm, source_to_detector_mm, patient
-        The request, as given to :func:`~napari_dslrxr.core.pipeline.run_file`.
+        The request, as given to :func:`~napari_dslrxr.core.files.run_file`.
     checksums : dict, optional
         SHA-256 by path, filled as files are hashed (a batch hashes its references once).
 
@@ -106,7 +106,7 @@ def check_finished(input_path: str | os.PathLike, out_dir: str | os.PathLike, pa
     RerunCheck
     """
     from .. import __version__
-    from .pipeline import output_paths
+    from .files import output_paths
     from .io.provenance import sidecar_path, to_jsonable
 
     expected = output_paths(input_path, out_dir, params)

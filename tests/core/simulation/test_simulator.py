@@ -9,8 +9,7 @@ from scenes import PHANTOM_SCENE_TOML
 from napari_dslrxr.core import io
 from napari_dslrxr.core.errors import InputError, ParameterError
 from napari_dslrxr.core.simulation.simulator import (ChainModel, effective_attenuation_per_mm, load_scene,
-                                          parse_effect_option, parse_scene, phantom_thickness_mm,
-                                          simulate_recording)
+                                                     parse_scene, phantom_thickness_mm, simulate_recording)
 
 SCENE = PHANTOM_SCENE_TOML + """[noise]
 poisson_gain_dn = 1.2
@@ -104,17 +103,11 @@ def test_scene_errors_are_one_line(tmp_path, scene_file):
         load_scene(bad)
 
 
-def test_scene_effects_and_effect_option(tmp_path, scene_file):
+def test_scene_effects(tmp_path, scene_file):
     path = tmp_path / "fx.toml"
     path.write_text(SCENE + "[effects.veiling_glare]\neta = 0.05\nrange_mm = 0.5\n")
     scene = load_scene(path)
     assert scene.effects["veiling_glare"]["eta"] == 0.05
-    name, params = parse_effect_option("heel_effect=0.05")
-    assert name == "heel_effect" and params["h1"] == 0.05 and params["h2"] == 0.0
-    name, params = parse_effect_option("mirror_ghost=epsilon:0.03,shift_mm:1.5")
-    assert params == {"epsilon": 0.03, "shift_mm": 1.5, "axis_deg": 0.0}
-    with pytest.raises(ParameterError):
-        parse_effect_option("mirror_ghost=epsilon")
 
 
 def test_wrong_thickness_shape_rejected():

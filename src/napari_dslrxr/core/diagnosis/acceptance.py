@@ -170,18 +170,7 @@ def _confusable(cand: dict, ranking: list[dict], threshold: float) -> list[tuple
 def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, test, say):
     """Refit the best candidates, accept the best refit (or nothing); returns
     ``(trial or None, AddedTerm or None, comparison list, generic signature or None)``."""
-    cgrid = problem.model.grid
-    trials: list[_Trial] = []
-    for cand in ranking[:opts.compare_top]:
-        if cand["delta_bic_est"] <= 0 and trials:
-            break
-        term = get_term(cand["effect"])
-        trial = _refit_with(problem, layout, x, chi2_now, term, _start_from_candidate(term, cand, cgrid),
-                            opts, log_n)
-        trial.score, trial.cand = cand["score"], cand
-        trials.append(trial)
-        say(f"{term.name}: refitted ΔBIC {trial.delta_bic:.1f}")
-    trials.sort(key=lambda t: -t.delta_bic)
+    trials = _refit_candidates(problem, layout, x, chi2_now, ranking, opts, log_n, say)
     comparison = [t.summary() for t in trials]
     passing = [t for t in trials if t.delta_bic > opts.accept_delta_bic]
     if not passing:
@@ -220,37 +209,64 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
         if gain <= 0:
             say(f"{winner.term.name}: held-out χ² worse by {-gain:.1f} — not accepted")
             continue
-        others = [t for t in trials if t is not winner]
-        runner = others[0] if others else None
-        cov = covariance(winner.jac)
-        se = np.sqrt(np.clip(np.diag(cov), 0, None))
-        params, unc = {}, {}
-        for j, (owner, key) in enumerate(winner.layout.names):
-            if owner == winner.term.name:
-                params[key], unc[key] = winner.term.spec(key).wrap(float(winner.x[j])), float(se[j])
-        ambiguous = bool(runner is not None and runner.delta_bic > opts.accept_delta_bic
-                         and winner.delta_bic - runner.delta_bic < opts.ambiguity_bic)
-        separating = ""
-        if ambiguous:
-            separating = (f"{winner.term.name}: {winner.term.separating}; "
-                          f"{runner.term.name}: {runner.term.separating}")
-        if like_smooth_light:
-            ambiguous, runner = True, additive
-            separating = (f"{winner.term.name}: {winner.term.separating}; smooth additive light (stray "
-                          "light, haze): a frame with the object moved or removed (a fluence or lens field "
-                          "scales with the transmission, additive light does not)")
-        n_dof = problem.n_effective - len(winner.x)
-        added = AddedTerm(winner.term.name, params, unc, winner.delta_bic, winner.chi2 / n_dof,
-                          winner.score, chi2_now - winner.chi2, float(gain),
-                          _confusable(winner.cand, ranking, opts.confusable_correlation),
-                          runner.term.name if runner else None,
-                          float(runner.delta_bic) if runner else None, ambiguous, separating,
-                          _at_bound(winner))
+        added = _added_term(problem, winner, trials, additive if like_smooth_light else None, chi2_now, gain,
+                            ranking, opts)
         say(f"added {winner.term.name} ΔBIC {winner.delta_bic:.1f} (runner-up "
-            f"{runner.term.name if runner else '—'}) held-out gain {gain:.1f}")
+            f"{added.runner_up or '—'}) held-out gain {gain:.1f}")
         return winner, added, comparison, None
     signature = GENERIC_SIGNATURE["smooth_additive"] if only_smooth_light else None
     return None, None, comparison, signature
+
+
+def _refit_candidates(problem, layout, x, chi2_now, ranking, opts, log_n, say) -> list[_Trial]:
+    """Refit the best-ranked candidates (at most ``opts.compare_top``; after the first, only those
+    the estimate says gain), best refitted ΔBIC first."""
+    cgrid = problem.model.grid
+    trials: list[_Trial] = []
+    for cand in ranking[:opts.compare_top]:
+        if cand["delta_bic_est"] <= 0 and trials:
+            break
+        term = get_term(cand["effect"])
+        trial = _refit_with(problem, layout, x, chi2_now, term, _start_from_candidate(term, cand, cgrid),
+                            opts, log_n)
+        trial.score, trial.cand = cand["score"], cand
+        trials.append(trial)
+        say(f"{term.name}: refitted ΔBIC {trial.delta_bic:.1f}")
+    trials.sort(key=lambda t: -t.delta_bic)
+    return trials
+
+
+def _added_term(problem, winner: _Trial, trials: list[_Trial], smooth_light: _Trial | None, chi2_now: float,
+                gain: float, ranking, opts) -> AddedTerm:
+    """The accepted term's record: its parameters and errors, its runner-up and whether the two
+    are ambiguous. ``smooth_light`` (the generic additive field) is the runner-up when the
+    winner does no better than it: named, but not separable from additive light."""
+    others = [t for t in trials if t is not winner]
+    runner = others[0] if others else None
+    cov = covariance(winner.jac)
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    params, unc = {}, {}
+    for j, (owner, key) in enumerate(winner.layout.names):
+        if owner == winner.term.name:
+            params[key], unc[key] = winner.term.spec(key).wrap(float(winner.x[j])), float(se[j])
+    ambiguous = bool(runner is not None and runner.delta_bic > opts.accept_delta_bic
+                     and winner.delta_bic - runner.delta_bic < opts.ambiguity_bic)
+    separating = ""
+    if ambiguous:
+        separating = (f"{winner.term.name}: {winner.term.separating}; "
+                      f"{runner.term.name}: {runner.term.separating}")
+    if smooth_light is not None:
+        ambiguous, runner = True, smooth_light
+        separating = (f"{winner.term.name}: {winner.term.separating}; smooth additive light (stray "
+                      "light, haze): a frame with the object moved or removed (a fluence or lens field "
+                      "scales with the transmission, additive light does not)")
+    n_dof = problem.n_effective - len(winner.x)
+    return AddedTerm(winner.term.name, params, unc, winner.delta_bic, winner.chi2 / n_dof,
+                     winner.score, chi2_now - winner.chi2, float(gain),
+                     _confusable(winner.cand, ranking, opts.confusable_correlation),
+                     runner.term.name if runner else None,
+                     float(runner.delta_bic) if runner else None, ambiguous, separating,
+                     _at_bound(winner))
 
 
 def update_reported(added: list[AddedTerm], layout: Layout, x: np.ndarray, jac: np.ndarray) -> None:

@@ -68,9 +68,9 @@ def parse_binning(text: str | int | None) -> int | None:
     try:
         value = int(text)
     except (TypeError, ValueError):
-        raise ParameterError(f"--binning must be 'auto' or an integer >= 1, got {text!r}") from None
+        raise ParameterError(f"binning must be 'auto' or an integer >= 1, got {text!r}") from None
     if value < 1:
-        raise ParameterError(f"--binning must be 'auto' or an integer >= 1, got {text!r}")
+        raise ParameterError(f"binning must be 'auto' or an integer >= 1, got {text!r}")
     return value
 
 

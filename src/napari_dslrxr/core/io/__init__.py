@@ -1,7 +1,10 @@
 """Files in and out: image readers and writers, DICOM DX export and provenance sidecars.
 
-* :mod:`.image_files` - checked readers for TIFF, PNG, DICOM and camera raw, atomic TIFF/PNG
-  writers, structured (TOML/JSON) files and checksums;
+* :mod:`.images` - the image records, format tables, size limits and checks every reader shares
+  (:func:`validate_image`);
+* :mod:`.readers` - checked readers for TIFF, PNG and DICOM, and structured (TOML/JSON) files;
+* :mod:`.raw` - camera raw: the linear RGB and the CFA planes;
+* :mod:`.writers` - atomic TIFF/PNG writers and input checksums;
 * :mod:`.dicom` - the DICOM DX writer with deterministic UIDs;
 * :mod:`.report_files` - figures as PNG bytes and text reports, written atomically;
 * :mod:`.provenance` - the JSON sidecar written beside every output (parameters, version, input
@@ -18,10 +21,11 @@ from .._lazy import lazy_exports
 
 #: Public names, by the module that defines them (imported on first use).
 _PUBLIC: dict[str, tuple[str, ...]] = {
-    "image_files": ("RAW_EXTENSIONS", "TIFF_EXTENSIONS", "PNG_EXTENSIONS", "DICOM_EXTENSIONS",
-        "MIN_SIDE_PX", "DEFAULT_MAX_PIXELS", "max_pixels_limit", "RawFrame", "LoadedImage",
-        "validate_image", "read_image", "read_raw", "read_structured_file", "postprocess_linear",
-        "file_sha256", "check_not_an_input", "atomic_write", "write_tiff", "write_png"),
+    "images": ("RAW_EXTENSIONS", "TIFF_EXTENSIONS", "PNG_EXTENSIONS", "DICOM_EXTENSIONS",
+        "MIN_SIDE_PX", "DEFAULT_MAX_PIXELS", "max_pixels_limit", "RawFrame", "LoadedImage", "validate_image"),
+    "readers": ("read_image", "read_structured_file"),
+    "raw": ("read_raw", "postprocess_linear"),
+    "writers": ("file_sha256", "check_not_an_input", "atomic_write", "write_tiff", "write_png"),
     "dicom": ("DX_FOR_PRESENTATION", "ALLOWED_PATIENT_FIELDS", "deterministic_uid", "write_dicom_dx"),
     "report_files": ("figure_png", "write_text", "report_folder"),
     "provenance": ("sidecar_path", "to_jsonable", "describe_inputs", "library_versions", "write_sidecar"),

@@ -77,10 +77,7 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     OutputError
         Wrong image dtype/shape or an unknown patient field.
     """
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
-
-    from .image_files import atomic_write
+    from .writers import atomic_write
 
     arr = np.ascontiguousarray(image)
     if arr.dtype != np.uint16 or arr.ndim != 2:
@@ -90,6 +87,23 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     if unknown:
         raise OutputError(f"{path}: unknown patient field(s) {', '.join(unknown)} "
                           f"(allowed: {', '.join(ALLOWED_PATIENT_FIELDS)})")
+    ds = _dx_identity(uid_seed)
+    _set_patient_and_study(ds, patient, series_description)
+    _set_image(ds, arr, window=window, pixel_spacing_mm=pixel_spacing_mm, linear=linear)
+    for keyword, value in (attributes or {}).items():  # pydicom writes elements in tag order
+        setattr(ds, keyword, value)
+
+    def _write(tmp: str) -> None:
+        ds.save_as(tmp, enforce_file_format=True)
+
+    return atomic_write(Path(path), _write, inputs=inputs)
+
+
+def _dx_identity(uid_seed: str):
+    """A DX For Presentation dataset with its file meta and UIDs, all derived from ``uid_seed``."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
+
     sop_uid = deterministic_uid(uid_seed, "sop")
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = DX_FOR_PRESENTATION
@@ -106,7 +120,12 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     ds.Modality = "DX"
     ds.ImageType = ["DERIVED", "PRIMARY"]
     ds.PresentationIntentType = "FOR PRESENTATION"
-    # type 2 attributes: present, empty unless the user supplied them (no dates: reproducible)
+    return ds
+
+
+def _set_patient_and_study(ds, patient: dict, series_description: str) -> None:
+    """Patient, study and series attributes: type 2 ones present, empty unless the user supplied
+    them (no dates or times: the file is reproducible)."""
     ds.PatientName = patient.get("PatientName", "")
     ds.PatientID = patient.get("PatientID", "")
     ds.PatientBirthDate = patient.get("PatientBirthDate", "")
@@ -130,6 +149,11 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
     ds.DetectorType = "SCINTILLATOR"
     ds.BurnedInAnnotation = "NO"
     ds.LossyImageCompression = "00"
+
+
+def _set_image(ds, arr: np.ndarray, *, window: tuple[float, float] | None,
+               pixel_spacing_mm: float | tuple[float, float] | None, linear: bool) -> None:
+    """The image module: 16-bit MONOCHROME2 pixels, intensity relationship, VOI window, spacing."""
     ds.SamplesPerPixel = 1
     ds.PhotometricInterpretation = "MONOCHROME2"
     ds.Rows, ds.Columns = int(arr.shape[0]), int(arr.shape[1])
@@ -150,11 +174,4 @@ def write_dicom_dx(path: str | os.PathLike, image: np.ndarray, *, uid_seed: str,
         spacing = [f"{float(sp[0]):.6g}", f"{float(sp[1]):.6g}"]
         ds.ImagerPixelSpacing = spacing
         ds.PixelSpacing = spacing
-    for keyword, value in (attributes or {}).items():
-        setattr(ds, keyword, value)
     ds.PixelData = arr.astype("<u2").tobytes()
-
-    def _write(tmp: str) -> None:
-        ds.save_as(tmp, enforce_file_format=True)
-
-    return atomic_write(Path(path), _write, inputs=inputs)

@@ -9,7 +9,7 @@ the display stages: collimation, value-of-interest window, dynamic range and con
 one through the other's path gives an inverted image or blanks anatomy.
 
 :func:`decide_input_kind` is the one rule, used by ``dslrxr run``
-(:func:`napari_dslrxr.core.pipeline.run_file`), the napari reader (which stores the decision
+(:func:`napari_dslrxr.core.files.run_file`), the napari reader (which stores the decision
 in the layer's metadata) and the contrast widget:
 
 1. camera raw (CR2, NEF, DNG...) is a camera frame, always;
@@ -188,10 +188,10 @@ def decide_input_kind(file_format: str | None = None, metadata: Mapping | None =
     Parameters
     ----------
     file_format : str or None
-        ``"raw"``, ``"dicom"``, ``"tiff"``, ``"png"`` (:attr:`~.image_files.LoadedImage.format`), or None
+        ``"raw"``, ``"dicom"``, ``"tiff"``, ``"png"`` (:attr:`~.images.LoadedImage.format`), or None
         for an array that did not come from a file.
     metadata : mapping, optional
-        The reader's metadata (:attr:`~.image_files.LoadedImage.metadata`: DICOM ``modality``,
+        The reader's metadata (:attr:`~.images.LoadedImage.metadata`: DICOM ``modality``,
         ``photometric_original``, ``pixel_intensity_relationship``; TIFF ``description``).
     data : ndarray, optional
         The pixels (dtype and colour are evidence for ``"auto"``).
@@ -216,5 +216,5 @@ def decide_input_kind(file_format: str | None = None, metadata: Mapping | None =
 
 
 def input_kind_of(image, requested: str = AUTO) -> InputKind:
-    """:func:`decide_input_kind` for a :class:`~.image_files.LoadedImage`."""
+    """:func:`decide_input_kind` for a :class:`~.images.LoadedImage`."""
     return decide_input_kind(image.format, image.metadata, image.data, requested)

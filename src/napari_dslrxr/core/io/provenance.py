@@ -22,7 +22,7 @@ import numpy as np
 
 from ... import __version__
 from ..errors import InputError, OutputError
-from .image_files import atomic_write, file_sha256
+from .writers import atomic_write, file_sha256
 
 #: Distributions whose versions can change an output's bytes; recorded in every sidecar.
 _RECORDED_LIBRARIES = ("numpy", "scipy", "scikit-image", "tifffile", "pydicom", "rawpy",

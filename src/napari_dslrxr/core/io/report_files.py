@@ -8,7 +8,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from ..errors import OutputError
-from .image_files import atomic_write
+from .writers import atomic_write
 
 
 def report_folder(path: str | Path) -> Path:

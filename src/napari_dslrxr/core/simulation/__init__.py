@@ -19,7 +19,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
     "physics_terms": ("STAGES", "ParamSpec", "ChainGrid", "ChainState", "PhysicsTerm", "LIBRARY",
         "LIBRARY_BY_NAME", "get_term", "validate_params"),
     "simulator": ("MATERIALS", "effective_attenuation_per_mm", "Scene", "parse_scene", "load_scene",
-        "block_mean", "ChainModel", "simulate_recording", "parse_effect_option", "phantom_thickness_mm"),
+        "block_mean", "ChainModel", "simulate_recording", "phantom_thickness_mm"),
     "phantom": ("SCINTILLATOR_RGB_WEIGHTS", "PhantomTruth", "PhantomFrames", "make_object",
         "make_dslr_radiograph"),
     "edge_synthesis": ("synthesize_edge_image",),

@@ -176,7 +176,7 @@ class PhysicsTerm:
         Library name and chain stage (one of :data:`STAGES`).
     params : tuple of ParamSpec
     main : str
-        The main amplitude parameter (``--effect NAME=VALUE`` sets it).
+        The main amplitude parameter (what a single value for the term sets, e.g. ``dslrxr simulate --effect NAME=VALUE``).
     apply : callable
         ``apply(state, params_dict)`` modifies the :class:`ChainState` in place.
     physics : str
@@ -222,9 +222,6 @@ class PhysicsTerm:
             return [{}]
         return [dict(zip([p.name for p in grid_specs], combo))
                 for combo in itertools.product(*[p.grid for p in grid_specs])]
-
-    def n_grid(self) -> int:
-        return sum(1 for p in self.params if p.is_grid)
 
 
 # --------------------------------------------------------------------------- helpers

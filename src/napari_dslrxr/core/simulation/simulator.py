@@ -446,30 +446,6 @@ def simulate_recording(scene: Scene, *, effects: dict[str, dict[str, float]] | N
                                       "effects": all_effects}
 
 
-def parse_effect_option(text: str) -> tuple[str, dict[str, float]]:
-    """Parse ``NAME=VALUE`` (main amplitude) or ``NAME=k1:v1,k2:v2`` into ``(name, params)``."""
-    if "=" not in text:
-        raise ParameterError(f"--effect {text!r}: expected NAME=VALUE or NAME=key:value,key:value")
-    name, _, value = text.partition("=")
-    term = get_term(name.strip())
-    value = value.strip()
-    if ":" not in value:
-        try:
-            return term.name, validate_params(term, {term.main: float(value)})
-        except ValueError:
-            raise ParameterError(f"--effect {text!r}: {value!r} is not a number") from None
-    params = {}
-    for part in value.split(","):
-        key, sep, val = part.partition(":")
-        if not sep:
-            raise ParameterError(f"--effect {text!r}: expected key:value pairs separated by commas")
-        try:
-            params[key.strip()] = float(val)
-        except ValueError:
-            raise ParameterError(f"--effect {text!r}: {val!r} is not a number") from None
-    return term.name, validate_params(term, params)
-
-
 def phantom_thickness_mm(shape: tuple[int, int], *, max_thickness_mm: float = 8.0) -> np.ndarray:
     """Analytic test phantom (float32, mm of the scene material).
 

@@ -157,7 +157,6 @@ def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_ti
         Not a 2-D (or 2-D colour) image.
     """
     from skimage.feature import canny
-    from skimage.transform import hough_line, hough_line_peaks
 
     if not 64 <= analysis_size_px <= 4096:
         raise ParameterError(f"analysis_size_px: must be 64 to 4096, got {analysis_size_px}")
@@ -188,37 +187,59 @@ def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_ti
     edges = canny(small, sigma=1.5, low_threshold=0.5 * min_step, high_threshold=min_step)
     gy, gx = np.gradient(cv2.GaussianBlur(small, (0, 0), 1.5))
     magnitude = np.hypot(gx, gy) + 1e-12
-    tilt = np.deg2rad(max_tilt_deg)
     grid_xy = np.meshgrid(np.arange(sw), np.arange(sh))  # (x, y) pixel indices, once for all candidates
     lines = {}
     for side, (axis_theta, outward) in _BLADE_SIDES.items():
         normal_gradient = (gx if axis_theta == 0 else gy) * outward  # rises towards the blade
-        side_edges = edges & (normal_gradient > 0.8 * magnitude)
-        if np.count_nonzero(side_edges) < 0.2 * min(sh, sw):
+        found = _best_blade(small, edges & (normal_gradient > 0.8 * magnitude), grid_xy, axis_theta, outward,
+                            max_tilt_deg, min_step)
+        if found is None:
             continue
-        thetas = axis_theta + np.linspace(-tilt, tilt, 2 * int(np.ceil(max_tilt_deg * 2)) + 1)
-        accumulator, angles, distances = hough_line(side_edges, theta=thetas)
-        length = sh if axis_theta == 0 else sw
-        _, peak_angles, peak_rhos = hough_line_peaks(accumulator, angles, distances, num_peaks=6,
-                                                     threshold=0.2 * length, min_distance=5)
-        best = (0.0, None)
-        for theta, rho in zip(peak_angles, peak_rhos):
-            score = _blade_score(small, grid_xy, float(theta), float(rho), outward, min_step)
-            if score > best[0]:
-                best = (score, (float(theta), float(rho)))
-        if best[1] is None:
-            continue
-        theta, rho = best[1]
-        # small-image pixel centres -> full resolution: p_full = (p_small + 0.5) * scale - 0.5
-        nx, ny = np.cos(theta) / scale[0], np.sin(theta) / scale[1]
-        norm = np.hypot(nx, ny)
-        full_theta = float(np.arctan2(ny, nx))
-        full_rho = float((rho + 0.5 * (np.cos(theta) + np.sin(theta))) / norm - 0.5 * (nx + ny) / norm)
+        full_theta, full_rho = _to_full_resolution(*found, scale)
         refined = _refine_blade(full, full_theta, full_rho, outward, half_width_px=2.0 * factor + 4.0)
         theta, rho = refined if refined is not None else (full_theta, full_rho)
         lines[side] = (theta, rho - outward * inset_px)
-    if not lines:
-        return nothing
+    poly = _field_polygon(lines, (h, w)) if lines else None
+    return nothing if poly is None else Region(polygon_mask((h, w), poly), poly, detected=True)
+
+
+def _best_blade(small: np.ndarray, side_edges: np.ndarray, grid_xy, axis_theta: float, outward: int,
+                max_tilt_deg: float, min_step: float) -> tuple[float, float] | None:
+    """The best-scoring blade line ``(theta, rho)`` of one side on the small copy, or None: the
+    peaks of a Hough transform of the side's edges within ``max_tilt_deg`` of its axis, each
+    scored by :func:`_blade_score`."""
+    from skimage.transform import hough_line, hough_line_peaks
+
+    sh, sw = small.shape
+    if np.count_nonzero(side_edges) < 0.2 * min(sh, sw):
+        return None
+    tilt = np.deg2rad(max_tilt_deg)
+    thetas = axis_theta + np.linspace(-tilt, tilt, 2 * int(np.ceil(max_tilt_deg * 2)) + 1)
+    accumulator, angles, distances = hough_line(side_edges, theta=thetas)
+    length = sh if axis_theta == 0 else sw
+    _, peak_angles, peak_rhos = hough_line_peaks(accumulator, angles, distances, num_peaks=6,
+                                                 threshold=0.2 * length, min_distance=5)
+    best = (0.0, None)
+    for theta, rho in zip(peak_angles, peak_rhos):
+        score = _blade_score(small, grid_xy, float(theta), float(rho), outward, min_step)
+        if score > best[0]:
+            best = (score, (float(theta), float(rho)))
+    return best[1]
+
+
+def _to_full_resolution(theta: float, rho: float, scale: np.ndarray) -> tuple[float, float]:
+    """A line of the small copy on the full-resolution grid: p_full = (p_small + 0.5) * scale - 0.5."""
+    nx, ny = np.cos(theta) / scale[0], np.sin(theta) / scale[1]
+    norm = np.hypot(nx, ny)
+    full_theta = float(np.arctan2(ny, nx))
+    full_rho = float((rho + 0.5 * (np.cos(theta) + np.sin(theta))) / norm - 0.5 * (nx + ny) / norm)
+    return full_theta, full_rho
+
+
+def _field_polygon(lines: dict, shape: tuple[int, int]) -> np.ndarray | None:
+    """The field's corners (TL, TR, BR, BL): the found blade lines, the frame's border on the
+    sides without a blade; None when two sides do not meet."""
+    h, w = shape
     border = {"left": (0.0, -0.5), "right": (0.0, w - 0.5), "top": (np.pi / 2, -0.5), "bottom": (np.pi / 2, h - 0.5)}
     as_direction = {}
     for side in _BLADE_SIDES:
@@ -229,7 +250,6 @@ def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_ti
     for first, second in (("left", "top"), ("top", "right"), ("right", "bottom"), ("bottom", "left")):
         point = _line_intersection(as_direction[first], as_direction[second])
         if point is None:
-            return nothing
+            return None
         corners.append(point)
-    poly = np.array(corners)
-    return Region(polygon_mask((h, w), poly), poly, detected=True)
+    return np.array(corners)

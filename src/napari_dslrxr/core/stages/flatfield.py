@@ -391,27 +391,3 @@ def apply_flat_field(image: np.ndarray, reference: FlatReference) -> np.ndarray:
             out *= reference.scale[0]
     return out
 
-
-def flat_field_correct(image: np.ndarray, flats: Sequence[np.ndarray] = (), darks: Sequence[np.ndarray] = (),
-                       *, black_level=None, params: FlatFieldParams | None = None) -> np.ndarray:
-    """Flat-field correct one radiograph (convenience: prepare the reference, then apply it).
-
-    Parameters
-    ----------
-    image : ndarray, (H, W) or (H, W, C)
-        Linear counts.
-    flats, darks : sequence of ndarray
-        Open-beam and dark frames of the same shape (counts).
-    black_level : float or sequence, optional
-        Used as the offset when no dark frame is given.
-    params : FlatFieldParams, optional
-
-    Returns
-    -------
-    ndarray, float32
-        Corrected counts.
-    """
-    image = np.asarray(image)
-    reference = prepare_flat_reference(image.shape, flats=flats, darks=darks,
-                                       black_level=black_level, params=params)
-    return apply_flat_field(image, reference)

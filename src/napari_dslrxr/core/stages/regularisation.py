@@ -16,9 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
-from .deconvolution import (REG_MAX, REG_MIN, _channel_noise, _channels, _luminance, _noise_floor, _solve_channel,
-                            _validate_image, check_method, estimate_noise_sigma, fo_derivative_spectrum,
-                            gradient_spectrum, kernel_otf, noise_sigma_tiles, robust_range, validate_kernel)
+from .deblur_params import REG_MAX, REG_MIN, check_method
+from .deblur_solvers import (_channel_noise, _channels, _luminance, _noise_floor, _solve_channel, _validate_image,
+                             estimate_noise_sigma, noise_sigma_tiles, robust_range, validate_kernel)
+from .fourier import fo_derivative_spectrum, gradient_spectrum, kernel_otf
 
 #: Per-method multipliers of the model-optimal weight in the automatic choice
 #: (rls, adaptive: of s2 / c; wiener: of the model-MSE-optimal constant NSR).

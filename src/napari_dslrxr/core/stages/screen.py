@@ -297,24 +297,7 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
         return Region(polygon_mask((h, w), poly), poly, detected=False, evidence={"source": "user polygon"})
     if not params.enabled:
         return Region(np.ones((h, w), bool), whole, detected=False, evidence={"source": "detection disabled"})
-    factor = max(1.0, max(h, w) / float(params.analysis_size_px))
-    size = (max(8, round(w / factor)), max(8, round(h / factor)))
-
-    def shrink(a: np.ndarray) -> np.ndarray:
-        a = a if a.dtype == np.float32 else a.astype(np.float32)
-        # downsample first (area average), then sum the colour channels: no full-size copy
-        return cv2.resize(a, size, interpolation=cv2.INTER_AREA) if factor > 1 else a.copy()
-
-    small = shrink(arr)
-    if illumination is not None:
-        light = shrink(np.asarray(illumination))
-        if light.ndim == 2 and small.ndim == 3:
-            light = light[..., None]
-        small = small * light if light.shape[:2] == small.shape[:2] else small
-        if light.shape[:2] == small.shape[:2]:
-            exposed[0] = flat_exposed_area(light if light.ndim == 2 else light.sum(axis=2))
-    if small.ndim == 3:
-        small = small.sum(axis=2)
+    small, exposed[0] = _light_seen(arr, illumination, params.analysis_size_px)
     noise = _noise_map(small)
     small = cv2.GaussianBlur(small, (0, 0), 1.0)
     top = float(np.percentile(small, 99.5))
@@ -326,10 +309,58 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
     if hi - lo < 1e-6:
         return nothing("the frame is uniform")
     scaled = np.round((logged - lo) / (hi - lo) * 255).astype(np.uint8)
+    found = _best_candidate(small, scaled, noise, params)
+    if found is None:
+        return nothing("no bright area")
+    corners, evidence = found
+    # pixel-centre coordinates of the small image -> full resolution
+    corners = (corners + 0.5) * np.array([w / small.shape[1], h / small.shape[0]]) - 0.5
+    corners = order_corners(corners)
+    if not evidence["accepted"]:
+        evidence.pop("open_side_index")
+        return nothing(evidence.pop("reason"), **{k: v for k, v in evidence.items() if k != "accepted"},
+                       candidate_xy=corners.round(1).tolist())
+    poly = _screen_polygon(corners, evidence, params, (h, w))
+    return Region(polygon_mask((h, w), poly), poly, detected=True, evidence=evidence)
+
+
+def _light_seen(arr: np.ndarray, illumination: np.ndarray | None,
+                analysis_size_px: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The light the camera saw (image x illumination, colour summed), area-downsampled so its
+    longest side is about ``analysis_size_px`` (float32), and the area the flat frame shows
+    exposed (small-image mask; None without an illumination of the image's shape)."""
+    h, w = arr.shape[:2]
+    factor = max(1.0, max(h, w) / float(analysis_size_px))
+    size = (max(8, round(w / factor)), max(8, round(h / factor)))
+
+    def shrink(a: np.ndarray) -> np.ndarray:
+        a = a if a.dtype == np.float32 else a.astype(np.float32)
+        # downsample first (area average), then sum the colour channels: no full-size copy
+        return cv2.resize(a, size, interpolation=cv2.INTER_AREA) if factor > 1 else a.copy()
+
+    small, exposed = shrink(arr), None
+    if illumination is not None:
+        light = shrink(np.asarray(illumination))
+        if light.ndim == 2 and small.ndim == 3:
+            light = light[..., None]
+        small = small * light if light.shape[:2] == small.shape[:2] else small
+        if light.shape[:2] == small.shape[:2]:
+            exposed = flat_exposed_area(light if light.ndim == 2 else light.sum(axis=2))
+    if small.ndim == 3:
+        small = small.sum(axis=2)
+    return small, exposed
+
+
+def _best_candidate(small: np.ndarray, scaled: np.ndarray, noise: np.ndarray,
+                    params: RegionParams) -> tuple[np.ndarray, dict] | None:
+    """Corners (small image's pixels) and evidence of the best screen candidate, or None.
+
+    Two candidates: the bright class of a log-scale Otsu split, and everything above the dark
+    class of a second split below it (when a large direct-exposure area takes the bright class,
+    the screen is the union of the two brighter classes). The first accepted one wins, unless
+    the lower threshold adds a real area; with none accepted, the first candidate and why.
+    """
     high, _ = cv2.threshold(scaled, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    # Two candidates: the bright class of a log-scale Otsu split, and everything above the
-    # dark class of a second split below it (when a large direct-exposure area takes the
-    # bright class, the screen is the union of the two brighter classes)
     thresholds = [high]
     darker = scaled[scaled <= high]
     if darker.size > 16 and np.ptp(darker) > 2:
@@ -349,15 +380,14 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
         if evidence["accepted"] and (best is None or area > 1.1 * best[2]):
             best = (corners, evidence, area)
     if first is None:
-        return nothing("no bright area")
-    corners, evidence = (best[0], best[1]) if best is not None else first
-    # pixel-centre coordinates of the small image -> full resolution
-    corners = (corners + 0.5) * np.array([w / small.shape[1], h / small.shape[0]]) - 0.5
-    corners = order_corners(corners)
-    if not evidence["accepted"]:
-        evidence.pop("open_side_index")
-        return nothing(evidence.pop("reason"), **{k: v for k, v in evidence.items() if k != "accepted"},
-                       candidate_xy=corners.round(1).tolist())
+        return None
+    return (best[0], best[1]) if best is not None else first
+
+
+def _screen_polygon(corners: np.ndarray, evidence: dict, params: RegionParams, shape: tuple[int, int]) -> np.ndarray:
+    """The accepted screen's corners shrunk inside its rim, except on the sides the frame cut,
+    which go on (or beyond) the frame's edge. Takes ``open_side_index`` out of ``evidence``."""
+    h, w = shape
     poly = shrink_polygon(corners, params.shrink_fraction)
     # a side the frame cut has no rim to drop: put it on (or beyond) the frame's edge
     edge_value = {"left": (0, -0.5, min), "top": (1, -0.5, min), "right": (0, w - 0.5, max), "bottom": (1, h - 0.5, max)}
@@ -365,6 +395,6 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
         axis, value, pick = edge_value[edge]
         for corner in (index, (index + 1) % 4):
             poly[corner, axis] = pick(corners[corner, axis], value)
-    return Region(polygon_mask((h, w), poly), poly, detected=True, evidence=evidence)
+    return poly
 
 

@@ -4,6 +4,8 @@ A DSLR photographing an X-ray scintillator records, besides the screen light, di
 hits on its sensor: bright spots of one pixel on the raw mosaic that demosaicing spreads into
 2x2 to 4x4 coloured patches. This module detects them with a statistical test and replaces
 only the detected pixels; every other pixel is returned bit-for-bit unchanged.
+The other pulse detectors of the package (reference frames, diagnosis, repeated exposures) and
+why each differs from this one: ``docs/architecture.md``, section 'Pulse detectors'.
 
 Model (Frosio & Borghese, IEEE TMI 28(1), 2009; Frosio, Abati & Borghese, IJCARS 2008;
 ``docs/algorithms/impulse.md``; issue 13's additions and limits in ``docs/impulse.md``). For a pixel value ``x`` and the median ``m``
@@ -64,7 +66,7 @@ ring and window medians), ``noise_model`` (mixture and EM fit),
 ``colour`` (HSV path), ``removal`` (:func:`remove_impulses`), ``cfa`` (raw Bayer planes).
 """
 
-from .cfa import cfa_mask_to_mosaic, demosaic_cleaned_raw, remove_impulses_cfa
+from .cfa import cfa_mask_to_mosaic, clean_raw_frame, demosaic_cleaned_raw, remove_impulses_cfa
 from .colour import dominant_hue, hsv_counts_to_rgb, rgb_to_hsv_counts
 from .params import MEDIAN_RESIDUAL_VARIANCE_FACTOR, SPACES, SPOT_POLARITIES, ImpulseParams, ImpulseResult
 from .removal import remove_impulses
@@ -74,6 +76,7 @@ __all__ = [
     "ImpulseResult",
     "remove_impulses",
     "remove_impulses_cfa",
+    "clean_raw_frame",
     "cfa_mask_to_mosaic",
     "demosaic_cleaned_raw",
     "rgb_to_hsv_counts",

@@ -110,3 +110,29 @@ def demosaic_cleaned_raw(path, cleaned_planes: np.ndarray, raw_frame) -> np.ndar
         raise
     except Exception as exc:  # rawpy.LibRawError and friends
         raise InputError(str(path), f"cannot demosaic the cleaned raw data ({exc})") from None
+
+
+def clean_raw_frame(loaded, params: ImpulseParams | None = None) -> tuple[np.ndarray, ImpulseResult]:
+    """The camera raw path of stage (i): pulses removed on the CFA planes, then demosaiced.
+
+    The one clean-then-demosaic sequence ``dslrxr run`` and ``dslrxr denoise`` share:
+    :func:`remove_impulses_cfa` on ``loaded.raw.cfa_planes``, then :func:`demosaic_cleaned_raw`
+    of ``loaded.path`` with the cleaned planes.
+
+    Parameters
+    ----------
+    loaded : napari_dslrxr.core.io.LoadedImage
+        A camera raw file read with its CFA planes (``loaded.raw`` set).
+    params : ImpulseParams, optional
+
+    Returns
+    -------
+    rgb : ndarray, uint16, (H, W, 3)
+        The linear RGB, as the reader gives it, with the pulses replaced.
+    result : ImpulseResult
+        The cleaned planes, and masks, gain and pulse rate keyed R, G1, G2, B.
+    """
+    if getattr(loaded, "raw", None) is None:
+        raise InputError(str(loaded.path), f"the CFA path needs a camera raw file, got {loaded.format}")
+    result = remove_impulses_cfa(loaded.raw.cfa_planes, params)
+    return demosaic_cleaned_raw(loaded.path, result.image, loaded.raw), result

@@ -194,7 +194,7 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
     the fit uses, and selecting on them does not bias the fitted noise). Regular subsample
     (deterministic).
     """
-    shape = h, w = x.shape
+    h, w = x.shape
     candidates = _subsample_indices(h * w, 2 * count)
     if valid is not None:
         candidates = candidates[valid.ravel()[candidates]]

@@ -1,8 +1,10 @@
-"""Helpers shared by the widgets: thread workers with progress and cancel, notifications, layers.
+"""The widgets' work off the GUI thread: thread workers with progress and cancel, and error reporting.
 
 The widgets are thin: they read layers and widget values, call the headless core, and show
-the results. Everything here runs on the GUI thread except the work handed to
-:func:`run_in_worker`, which never touches a widget or a layer.
+the results. Everything runs on the GUI thread except the work handed to
+:func:`run_in_worker`, which never touches a widget or a layer; :class:`JobPanel` is the progress
+bar and Cancel button of a widget, and :class:`EventLoopMonitor` measures how long the GUI
+thread was blocked (the tests' responsiveness check).
 """
 
 from __future__ import annotations
@@ -15,14 +17,12 @@ import traceback
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..core.errors import DslrxrError, WorkCancelled
 
-if TYPE_CHECKING:
-    import napari
 
 _LOG = logging.getLogger(__name__)
 
@@ -97,6 +97,19 @@ def guarded(context: str) -> Callable[[Callable], Callable]:
 
 
 # --------------------------------------------------------------------------- workers
+
+
+def readout_label() -> Any:
+    """A magicgui Label for a widget's results: selectable, word-wrapped (keeps the dock narrow)."""
+    from magicgui.widgets import Label
+    from qtpy.QtCore import Qt
+
+    label = Label(value="")
+    label.native.setWordWrap(True)
+    label.native.setMinimumWidth(300)
+    label.native.setAlignment(Qt.AlignmentFlag.AlignLeft | Qt.AlignmentFlag.AlignVCenter)
+    label.native.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+    return label
 
 
 class JobPanel:
@@ -338,342 +351,6 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
     return worker
 
 
-def remove_layer(viewer: napari.Viewer, name: str) -> bool:
-    """Remove the layer called ``name`` if there is one; return whether it was there."""
-    if name in viewer.layers:
-        viewer.layers.remove(name)
-        return True
-    return False
-
-
-class LivePreviewMixin:
-    """Live preview of a stage widget: one preview worker at a time, the newest settings
-    computed once it is done, and the preview layer removed when the preview is turned off or
-    another image is chosen.
-
-    The widget provides ``_viewer``, ``_image`` (layer combo), ``_live`` (check box) and
-    ``_start_preview()`` (starts the worker with ``on_finished=self._preview_done`` and sets
-    ``_preview_layer`` when it shows the result), and calls :meth:`_init_live_preview`.
-    """
-
-    def _init_live_preview(self) -> None:
-        self._preview_worker = None
-        self._preview_pending = False
-        self._preview_layer: str | None = None
-        self._live.changed.connect(self._live_toggled)
-        self._image.changed.connect(self._drop_preview)
-
-    def _live_toggled(self, on: bool) -> None:
-        if not on:
-            self._drop_preview()
-
-    def _drop_preview(self, *_args) -> None:
-        """Remove the preview layer (preview turned off, or another image chosen)."""
-        if self._preview_layer is not None:
-            remove_layer(self._viewer, self._preview_layer)
-            self._preview_layer = None
-
-    def update_preview(self) -> None:
-        """Recompute the preview (no-op unless live preview is on and an image is chosen)."""
-        if not self._live.value or self._image.value is None:
-            return
-        if self._preview_worker is not None and not self._preview_worker.dslrxr_finished:
-            self._preview_pending = True  # compute the newest settings when this one is done
-            return
-        self._start_preview()
-
-    def _preview_done(self) -> None:
-        if self._preview_pending:
-            self._preview_pending = False
-            self.update_preview()
-
-
-class ReportButtonsMixin:
-    """The run, "Write report" and "Open report" buttons of a measuring widget.
-
-    The widget provides ``_run``, ``_write`` and ``_open`` (push buttons), ``_readout``,
-    ``_job`` (:class:`JobPanel`), ``result`` (None until a run showed one) and
-    ``report_paths`` (the report writer's paths by name), and sets :attr:`REPORT_PAGE` (the
-    key of the page to open) and :attr:`REPORT_NAME` (for the messages).
-    """
-
-    REPORT_PAGE = "report"
-    REPORT_NAME = "report"
-
-    def _done(self) -> None:
-        """The run's job is over (any outcome): the run button again, and the read-out not
-        left at "...ing...". """
-        self._run.enabled = True
-        if self._readout.value.endswith("..."):
-            self._readout.value = self._job.status.value
-
-    def _written(self, folder: Path, paths: dict) -> None:
-        self.report_paths = paths
-        self._open.enabled = True
-        notify_info(f"{self.REPORT_NAME} written to {folder}")
-
-    def _write_done(self) -> None:
-        self._write.enabled = self.result is not None
-
-    @guarded("open report")
-    def open_report(self) -> bool:
-        """Open the report's page in the web browser."""
-        import webbrowser
-
-        page = self.report_paths.get(self.REPORT_PAGE)
-        if page is None or not Path(page).is_file():
-            from ..core.errors import ParameterError
-
-            raise ParameterError("write the report first")
-        return webbrowser.open(Path(page).resolve().as_uri())
-
-
-# --------------------------------------------------------------------------- layers
-
-
-def single_channel_layers(viewer: napari.Viewer) -> list[tuple[str, Any]]:
-    """``(name, layer)`` of the image layers holding one 2-D channel (a detector's linear
-    pixels; colour layers are left out), for a layer choice."""
-    from napari.layers import Image
-
-    return [(layer.name, layer) for layer in viewer.layers
-            if isinstance(layer, Image) and not layer.rgb and np.ndim(layer.data) == 2]
-
-
-def reset_choices(*widgets: Any) -> None:
-    """Refresh the layer choices of ``widgets`` (a layer was added or removed)."""
-    try:
-        for widget in widgets:
-            widget.reset_choices()
-    except RuntimeError:  # widget already deleted while napari tears down
-        pass
-
-
-def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: str = "image",
-               **kwargs: Any) -> napari.layers.Layer:
-    """Update the layer called ``name`` in place (same type and ndim), or add it.
-
-    Re-running a stage therefore replaces its result layer instead of piling up copies.
-    """
-    if name in viewer.layers:
-        layer = viewer.layers[name]
-        if layer._type_string == layer_type and np.ndim(layer.data) == np.ndim(data) and (
-            getattr(layer, "rgb", False) == bool(kwargs.get("rgb", False))
-        ):
-            layer.data = data
-            # Set only what changed: every setter makes napari refresh the layer (costly
-            # when a live preview updates it several times a second).
-            for key in ("scale", "translate"):
-                if key in kwargs and not np.allclose(getattr(layer, key)[-2:], kwargs[key]):
-                    setattr(layer, key, kwargs[key])
-            if "colormap" in kwargs and getattr(layer.colormap, "name", None) != kwargs["colormap"]:
-                layer.colormap = kwargs["colormap"]
-            for key in ("opacity", "visible"):
-                if key in kwargs and getattr(layer, key) != kwargs[key]:
-                    setattr(layer, key, kwargs[key])
-            if "metadata" in kwargs:
-                layer.metadata = kwargs["metadata"]
-            if layer_type == "image":
-                limits = tuple(kwargs.get("contrast_limits") or robust_limits(data))
-                if tuple(layer.contrast_limits_range) != limits:
-                    layer.contrast_limits_range = limits
-                if tuple(layer.contrast_limits) != limits:
-                    layer.contrast_limits = limits
-            return layer
-        viewer.layers.remove(layer)
-    if layer_type == "image" and "contrast_limits" not in kwargs:
-        kwargs["contrast_limits"] = robust_limits(data)
-    add = getattr(viewer, f"add_{layer_type}")
-    return add(data, name=name, **kwargs)
-
-
-def robust_limits(data: np.ndarray, percentiles: tuple[float, float] = (0.5, 99.5)) -> tuple[float, float]:
-    """Display range of an image ignoring outliers (pulses, unexposed pixels): percentiles of
-    a subsample of at most ~1e6 values."""
-    flat = np.asarray(data).reshape(-1)
-    step = max(1, flat.size // 1_000_000)
-    sample = flat[::step]
-    sample = sample[np.isfinite(sample)] if sample.dtype.kind == "f" else sample
-    if sample.size == 0:
-        return (0.0, 1.0)
-    lo, hi = (float(v) for v in np.percentile(sample, percentiles))
-    return (lo, hi) if hi > lo else (lo, lo + 1.0)
-
-
-def readout_label() -> Any:
-    """A magicgui Label for a widget's results: selectable, word-wrapped (keeps the dock narrow)."""
-    from magicgui.widgets import Label
-    from qtpy.QtCore import Qt
-
-    label = Label(value="")
-    label.native.setWordWrap(True)
-    label.native.setMinimumWidth(300)
-    label.native.setAlignment(Qt.AlignmentFlag.AlignLeft | Qt.AlignmentFlag.AlignVCenter)
-    label.native.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
-    return label
-
-
-def same_geometry(reference: napari.layers.Layer) -> dict:
-    """Keyword arguments that place a derived layer over ``reference`` in world coordinates."""
-    return {"scale": tuple(reference.scale[-2:]), "translate": tuple(reference.translate[-2:])}
-
-
-def viewer_camera(viewer: napari.Viewer):
-    """The viewer's camera model (``viewer.scene.camera`` since napari 0.9, else ``viewer.camera``)."""
-    scene = getattr(viewer, "scene", None)
-    camera = getattr(scene, "camera", None)
-    return camera if camera is not None else viewer.camera
-
-
-def visible_region(viewer: napari.Viewer, layer: napari.layers.Layer,
-                   shape: tuple[int, ...] | None = None, *, margin_px: int = 0) -> tuple[slice, slice]:
-    """Row and column slices of ``layer``'s data visible on the canvas (2-D view).
-
-    Computed from the camera (centre, zoom) and the canvas size, so it is current as soon as
-    the camera changes (``layer.corner_pixels`` only follows at the next redraw). Assumes the
-    layer is placed by scale and translate only (no rotation or shear). Grown by
-    ``margin_px`` and clipped to the image.
-    """
-    shape = tuple(shape or np.shape(layer.data))[:2]
-    height_px, width_px = viewer.canvas.size
-    camera = viewer_camera(viewer)
-    zoom = float(camera.zoom)
-    centre = np.asarray(camera.center[-2:], float)
-    half = np.array([height_px, width_px], float) / (2.0 * zoom)
-    scale = np.asarray(layer.scale[-2:], float)
-    translate = np.asarray(layer.translate[-2:], float)
-    low = (centre - half - translate) / scale
-    high = (centre + half - translate) / scale
-    r0 = int(np.clip(np.floor(low[0] + 0.5) - margin_px, 0, shape[0] - 1))
-    c0 = int(np.clip(np.floor(low[1] + 0.5) - margin_px, 0, shape[1] - 1))
-    r1 = int(np.clip(np.ceil(high[0] + 0.5) + margin_px, r0 + 1, shape[0]))
-    c1 = int(np.clip(np.ceil(high[1] + 0.5) + margin_px, c0 + 1, shape[1]))
-    return slice(r0, r1), slice(c0, c1)
-
-
-# --------------------------------------------------------------------------- live preview
-
-
-def debounced(owner: Any, fn: Callable[[], None], timeout_ms: int) -> Callable[..., None]:
-    """A trigger that calls ``fn()`` once, ``timeout_ms`` after the last of a burst of calls.
-
-    The timer belongs to ``owner.native`` (a magicgui widget), so it dies with the widget; a
-    trigger arriving while napari tears the widget down (layer lists emptied) is ignored.
-    """
-    from superqt.utils import qdebounced
-
-    def call() -> None:
-        try:
-            fn()
-        except RuntimeError as exc:  # the Qt side of the widget is already deleted
-            if "deleted" not in str(exc):
-                raise
-
-    throttled = qdebounced(call, timeout_ms, parent=owner.native)
-
-    def trigger(*_args: Any) -> None:
-        try:
-            throttled()
-        except RuntimeError as exc:
-            if "deleted" not in str(exc):
-                raise
-
-    trigger.cancel = throttled.cancel  # type: ignore[attr-defined]
-    trigger.flush = throttled.flush  # type: ignore[attr-defined]
-    return trigger
-
-
-# --------------------------------------------------------------------------- parameter controls
-
-
-def _fmt(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:g}"
-    return str(value)
-
-
-def param_tooltip(cls: type, name: str, *, label: str = "", section: str | None = None,
-                  term: str | None = None) -> str:
-    """Tooltip of the control of field ``name`` of parameter dataclass ``cls``: meaning, unit,
-    range (or choices), default and where it lives in the parameter file, all from the
-    field's metadata (:func:`napari_dslrxr.core.param_fields.field_info`)."""
-    from ..core.param_fields import field_info
-
-    info = field_info(cls, name)
-    lines = [f"{label}: {info['help']}" if label else info["help"]]
-    if term:
-        lines.append(f"Technical term: {term}.")
-    facts = []
-    if info.get("unit"):
-        facts.append(f"unit: {info['unit']}")
-    if info.get("choices"):
-        facts.append("one of " + ", ".join(_fmt(c) for c in info["choices"]))
-    elif info.get("min") is not None or info.get("max") is not None:
-        facts.append(f"range {_fmt(info.get('min'))} to {_fmt(info.get('max'))}")
-    if "default" in info:
-        facts.append(f"default {_fmt(info['default'])}")
-    if facts:
-        text = "; ".join(facts)
-        lines.append(text[0].upper() + text[1:] + ".")
-    if section:
-        lines.append(f"Parameter file: [{section}] {name}")
-    return "\n".join(lines)
-
-
-def param_widget(cls: type, name: str, *, label: str, section: str | None = None, term: str | None = None,
-                 slider: bool = False, **kwargs: Any):
-    """The magicgui control of a parameter field: type, range, choices, default and tooltip
-    all from the field's metadata (one source with the TOML comments and the CLI).
-
-    ``kwargs`` go to the magicgui widget (e.g. ``step``); ``value`` overrides the default.
-    """
-    from magicgui.widgets import CheckBox, ComboBox, FloatSlider, FloatSpinBox, SpinBox
-
-    from ..core.param_fields import field_info
-
-    info = field_info(cls, name)
-    default = kwargs.pop("value", info.get("default"))
-    tooltip = param_tooltip(cls, name, label=label, section=section, term=term)
-    common = {"label": label, "tooltip": tooltip, **kwargs}
-    if info.get("choices"):
-        return ComboBox(choices=list(info["choices"]), value=default, **common)
-    if isinstance(default, bool):
-        return CheckBox(value=default, **common)
-    lo, hi = info.get("min"), info.get("max")
-    if isinstance(default, int):
-        return SpinBox(value=default, min=int(lo if lo is not None else 0), max=int(hi if hi is not None else 10**9),
-                       **common)
-    lo = float(lo) if lo is not None else 0.0
-    hi = float(hi) if hi is not None else 1e9
-    common.setdefault("step", _nice_step(hi - lo))
-    if slider:
-        widget = FloatSlider(value=float(default), min=lo, max=hi, **common)
-        widget.native.setMinimumWidth(200)  # the track stays visible beside its label
-        return widget
-    return FloatSpinBox(value=float(default), min=lo, max=hi, **common)
-
-
-def _nice_step(span: float) -> float:
-    """A round step of about a hundredth of ``span`` (0.01 for 0..1, 1 for 0..100...)."""
-    if not span > 0:
-        return 0.01
-    return float(10 ** np.floor(np.log10(span / 100.0)))
-
-
-def restore_defaults_button(restore: Callable[[], None]):
-    """A "Restore defaults" push button calling ``restore`` (errors become notifications)."""
-    from magicgui.widgets import PushButton
-
-    button = PushButton(text="Restore defaults", tooltip="set this widget's parameters back to their defaults")
-
-    @guarded("restore defaults")
-    def _restore() -> None:
-        restore()
-
-    button.changed.connect(_restore)
-    return button
-
-
 # --------------------------------------------------------------------------- responsiveness
 
 
@@ -720,3 +397,43 @@ class EventLoopMonitor:
         self._tick()
         self._timer.stop()
         return self.max_gap_s
+
+
+class ReportButtonsMixin:
+    """The run, "Write report" and "Open report" buttons of a measuring widget.
+
+    The widget provides ``_run``, ``_write`` and ``_open`` (push buttons), ``_readout``,
+    ``_job`` (:class:`JobPanel`), ``result`` (None until a run showed one) and
+    ``report_paths`` (the report writer's paths by name), and sets :attr:`REPORT_PAGE` (the
+    key of the page to open) and :attr:`REPORT_NAME` (for the messages).
+    """
+
+    REPORT_PAGE = "report"
+    REPORT_NAME = "report"
+
+    def _done(self) -> None:
+        """The run's job is over (any outcome): the run button again, and the read-out not
+        left at "...ing...". """
+        self._run.enabled = True
+        if self._readout.value.endswith("..."):
+            self._readout.value = self._job.status.value
+
+    def _written(self, folder: Path, paths: dict) -> None:
+        self.report_paths = paths
+        self._open.enabled = True
+        notify_info(f"{self.REPORT_NAME} written to {folder}")
+
+    def _write_done(self) -> None:
+        self._write.enabled = self.result is not None
+
+    @guarded("open report")
+    def open_report(self) -> bool:
+        """Open the report's page in the web browser."""
+        import webbrowser
+
+        page = self.report_paths.get(self.REPORT_PAGE)
+        if page is None or not Path(page).is_file():
+            from ..core.errors import ParameterError
+
+            raise ParameterError("write the report first")
+        return webbrowser.open(Path(page).resolve().as_uri())

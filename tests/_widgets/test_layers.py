@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from napari_dslrxr._widgets._common import robust_limits, visible_region
+from napari_dslrxr._widgets._layers import robust_limits, visible_region
 
 
 def fake_viewer(centre_rc, zoom, canvas_hw):

@@ -1,0 +1,204 @@
+"""Layer helpers of the widgets: results shown as layers (updated in place), the visible part
+of an image, and the live preview's mechanics (one worker at a time, debounced triggers)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import napari
+
+
+def remove_layer(viewer: napari.Viewer, name: str) -> bool:
+    """Remove the layer called ``name`` if there is one; return whether it was there."""
+    if name in viewer.layers:
+        viewer.layers.remove(name)
+        return True
+    return False
+
+
+class LivePreviewMixin:
+    """Live preview of a stage widget: one preview worker at a time, the newest settings
+    computed once it is done, and the preview layer removed when the preview is turned off or
+    another image is chosen.
+
+    The widget provides ``_viewer``, ``_image`` (layer combo), ``_live`` (check box) and
+    ``_start_preview()`` (starts the worker with ``on_finished=self._preview_done`` and sets
+    ``_preview_layer`` when it shows the result), and calls :meth:`_init_live_preview`.
+    """
+
+    def _init_live_preview(self) -> None:
+        self._preview_worker = None
+        self._preview_pending = False
+        self._preview_layer: str | None = None
+        self._live.changed.connect(self._live_toggled)
+        self._image.changed.connect(self._drop_preview)
+
+    def _live_toggled(self, on: bool) -> None:
+        if not on:
+            self._drop_preview()
+
+    def _drop_preview(self, *_args) -> None:
+        """Remove the preview layer (preview turned off, or another image chosen)."""
+        if self._preview_layer is not None:
+            remove_layer(self._viewer, self._preview_layer)
+            self._preview_layer = None
+
+    def update_preview(self) -> None:
+        """Recompute the preview (no-op unless live preview is on and an image is chosen)."""
+        if not self._live.value or self._image.value is None:
+            return
+        if self._preview_worker is not None and not self._preview_worker.dslrxr_finished:
+            self._preview_pending = True  # compute the newest settings when this one is done
+            return
+        self._start_preview()
+
+    def _preview_done(self) -> None:
+        if self._preview_pending:
+            self._preview_pending = False
+            self.update_preview()
+
+
+# --------------------------------------------------------------------------- layers
+
+
+def single_channel_layers(viewer: napari.Viewer) -> list[tuple[str, Any]]:
+    """``(name, layer)`` of the image layers holding one 2-D channel (a detector's linear
+    pixels; colour layers are left out), for a layer choice."""
+    from napari.layers import Image
+
+    return [(layer.name, layer) for layer in viewer.layers
+            if isinstance(layer, Image) and not layer.rgb and np.ndim(layer.data) == 2]
+
+
+def reset_choices(*widgets: Any) -> None:
+    """Refresh the layer choices of ``widgets`` (a layer was added or removed)."""
+    try:
+        for widget in widgets:
+            widget.reset_choices()
+    except RuntimeError:  # widget already deleted while napari tears down
+        pass
+
+
+def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: str = "image",
+               **kwargs: Any) -> napari.layers.Layer:
+    """Update the layer called ``name`` in place (same type and ndim), or add it.
+
+    Re-running a stage therefore replaces its result layer instead of piling up copies.
+    """
+    if name in viewer.layers:
+        layer = viewer.layers[name]
+        if layer._type_string == layer_type and np.ndim(layer.data) == np.ndim(data) and (
+            getattr(layer, "rgb", False) == bool(kwargs.get("rgb", False))
+        ):
+            layer.data = data
+            # Set only what changed: every setter makes napari refresh the layer (costly
+            # when a live preview updates it several times a second).
+            for key in ("scale", "translate"):
+                if key in kwargs and not np.allclose(getattr(layer, key)[-2:], kwargs[key]):
+                    setattr(layer, key, kwargs[key])
+            if "colormap" in kwargs and getattr(layer.colormap, "name", None) != kwargs["colormap"]:
+                layer.colormap = kwargs["colormap"]
+            for key in ("opacity", "visible"):
+                if key in kwargs and getattr(layer, key) != kwargs[key]:
+                    setattr(layer, key, kwargs[key])
+            if "metadata" in kwargs:
+                layer.metadata = kwargs["metadata"]
+            if layer_type == "image":
+                limits = tuple(kwargs.get("contrast_limits") or robust_limits(data))
+                if tuple(layer.contrast_limits_range) != limits:
+                    layer.contrast_limits_range = limits
+                if tuple(layer.contrast_limits) != limits:
+                    layer.contrast_limits = limits
+            return layer
+        viewer.layers.remove(layer)
+    if layer_type == "image" and "contrast_limits" not in kwargs:
+        kwargs["contrast_limits"] = robust_limits(data)
+    add = getattr(viewer, f"add_{layer_type}")
+    return add(data, name=name, **kwargs)
+
+
+def robust_limits(data: np.ndarray, percentiles: tuple[float, float] = (0.5, 99.5)) -> tuple[float, float]:
+    """Display range of an image ignoring outliers (pulses, unexposed pixels): percentiles of
+    a subsample of at most ~1e6 values."""
+    flat = np.asarray(data).reshape(-1)
+    step = max(1, flat.size // 1_000_000)
+    sample = flat[::step]
+    sample = sample[np.isfinite(sample)] if sample.dtype.kind == "f" else sample
+    if sample.size == 0:
+        return (0.0, 1.0)
+    lo, hi = (float(v) for v in np.percentile(sample, percentiles))
+    return (lo, hi) if hi > lo else (lo, lo + 1.0)
+
+
+def same_geometry(reference: napari.layers.Layer) -> dict:
+    """Keyword arguments that place a derived layer over ``reference`` in world coordinates."""
+    return {"scale": tuple(reference.scale[-2:]), "translate": tuple(reference.translate[-2:])}
+
+
+def viewer_camera(viewer: napari.Viewer):
+    """The viewer's camera model (``viewer.scene.camera`` since napari 0.9, else ``viewer.camera``)."""
+    scene = getattr(viewer, "scene", None)
+    camera = getattr(scene, "camera", None)
+    return camera if camera is not None else viewer.camera
+
+
+def visible_region(viewer: napari.Viewer, layer: napari.layers.Layer,
+                   shape: tuple[int, ...] | None = None, *, margin_px: int = 0) -> tuple[slice, slice]:
+    """Row and column slices of ``layer``'s data visible on the canvas (2-D view).
+
+    Computed from the camera (centre, zoom) and the canvas size, so it is current as soon as
+    the camera changes (``layer.corner_pixels`` only follows at the next redraw). Assumes the
+    layer is placed by scale and translate only (no rotation or shear). Grown by
+    ``margin_px`` and clipped to the image.
+    """
+    shape = tuple(shape or np.shape(layer.data))[:2]
+    height_px, width_px = viewer.canvas.size
+    camera = viewer_camera(viewer)
+    zoom = float(camera.zoom)
+    centre = np.asarray(camera.center[-2:], float)
+    half = np.array([height_px, width_px], float) / (2.0 * zoom)
+    scale = np.asarray(layer.scale[-2:], float)
+    translate = np.asarray(layer.translate[-2:], float)
+    low = (centre - half - translate) / scale
+    high = (centre + half - translate) / scale
+    r0 = int(np.clip(np.floor(low[0] + 0.5) - margin_px, 0, shape[0] - 1))
+    c0 = int(np.clip(np.floor(low[1] + 0.5) - margin_px, 0, shape[1] - 1))
+    r1 = int(np.clip(np.ceil(high[0] + 0.5) + margin_px, r0 + 1, shape[0]))
+    c1 = int(np.clip(np.ceil(high[1] + 0.5) + margin_px, c0 + 1, shape[1]))
+    return slice(r0, r1), slice(c0, c1)
+
+
+# --------------------------------------------------------------------------- live preview
+
+
+def debounced(owner: Any, fn: Callable[[], None], timeout_ms: int) -> Callable[..., None]:
+    """A trigger that calls ``fn()`` once, ``timeout_ms`` after the last of a burst of calls.
+
+    The timer belongs to ``owner.native`` (a magicgui widget), so it dies with the widget; a
+    trigger arriving while napari tears the widget down (layer lists emptied) is ignored.
+    """
+    from superqt.utils import qdebounced
+
+    def call() -> None:
+        try:
+            fn()
+        except RuntimeError as exc:  # the Qt side of the widget is already deleted
+            if "deleted" not in str(exc):
+                raise
+
+    throttled = qdebounced(call, timeout_ms, parent=owner.native)
+
+    def trigger(*_args: Any) -> None:
+        try:
+            throttled()
+        except RuntimeError as exc:
+            if "deleted" not in str(exc):
+                raise
+
+    trigger.cancel = throttled.cancel  # type: ignore[attr-defined]
+    trigger.flush = throttled.flush  # type: ignore[attr-defined]
+    return trigger

@@ -1,0 +1,170 @@
+"""The display end of the chain: value-of-interest scaling, dynamic range, contrast, display curve.
+
+Shared by the camera-frame pipeline (:func:`~.pipeline.run_pipeline`, after the grey/log step),
+the display-radiograph path (:func:`~.pipeline.run_display_pipeline`: CR/DX DICOM already in
+display form) and the napari contrast widget:
+
+* :func:`scale_to_voi_window` - the value-of-interest window mapped to [0, 1];
+* :func:`scale_display_radiograph` - that scaling for a display radiograph, inside its
+  collimated field;
+* :func:`display_steps` / :func:`apply_display_stages` - stages (v) and (vi) and the sigmoid
+  display curve, one stage at a time or in one call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+
+import numpy as np
+
+from .params import PipelineParams
+from .stages.collimation import detect_collimation
+from .stages.contrast import enhance_contrast
+from .stages.dynamic_range import CLIPPED_HIGH, CLIPPED_LOW, fit_to_display, reduce_dynamic_range, sigmoid_lut
+from .stages.region import direct_exposure_level, voi_window
+
+
+def scale_to_voi_window(x: np.ndarray, sample: np.ndarray, params: PipelineParams) -> tuple[float, float]:
+    """Map the VOI window found on ``sample`` to [0, 1], in place on float32 ``x``; return the window."""
+    lo, hi = voi_window(sample, low_percentile=params.region.voi_low_percentile,
+                        high_percentile=params.region.voi_high_percentile,
+                        exclude_direct_exposure=params.region.exclude_direct_exposure)
+    x -= np.float32(lo)
+    x *= np.float32(1.0 / (hi - lo))
+    return lo, hi
+
+
+def _anatomy_grid(image: np.ndarray, mask: np.ndarray | None, params: PipelineParams) -> tuple[int, np.ndarray]:
+    """Regular subsample step and its anatomy mask: inside ``mask``, outside direct exposure.
+
+    ``image`` is the value-of-interest scaled attenuation; the direct-exposure level is the
+    one the value-of-interest window leaves out (:func:`direct_exposure_level`).
+    """
+    step = max(1, int(np.sqrt(image.size / 1_000_000)))
+    sub = image[::step, ::step]
+    anatomy = np.ones(sub.shape, bool) if mask is None else mask[::step, ::step].copy()
+    if not anatomy.any():
+        anatomy[...] = True
+    if params.region.exclude_direct_exposure:
+        # the conservative level: thin tissue beside the direct exposure must not burn out
+        low = direct_exposure_level(sub[anatomy], at_foot=True)
+        if low is not None:
+            anatomy &= sub >= low
+    return step, anatomy
+
+
+def display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelineParams,
+                   fill_outside: bool = True, report: dict | None = None) -> Generator[np.ndarray, None, None]:
+    """Yield the image after dynamic-range reduction, after contrast, and the display image.
+
+    The body of :func:`apply_display_stages`, one stage per ``next`` so that
+    :func:`~.pipeline.run_pipeline` can report progress and time each stage. The generator releases
+    ``image`` once the first stage is done and each stage's result once the next is done.
+    Before the display curve the anatomy is kept off the display's ends
+    (:func:`~napari_dslrxr.core.dynamic_range.fit_to_display`); ``report`` (when given) gets
+    the adjustment (``display_fit``) and the share of the anatomy still clipped
+    (``clipped_fraction``).
+    """
+    step, anatomy = _anatomy_grid(image, mask, params)
+    x = reduce_dynamic_range(image, mask, params.dynamic_range)
+    del image
+    yield x
+    x = enhance_contrast(x, params.contrast, mask)
+    yield x
+    fit = fit_to_display(x, x[::step, ::step][anatomy], params.dynamic_range)
+    x = sigmoid_lut(x, params.dynamic_range)
+    if report is not None:
+        shown = x[::step, ::step][anatomy]
+        report["display_fit"] = fit
+        report["clipped_fraction"] = round(float(np.mean((shown <= CLIPPED_LOW) | (shown >= CLIPPED_HIGH))), 5) \
+            if shown.size else 0.0
+    if fill_outside and mask is not None and not mask.all():
+        x[~mask] = 0.0 if params.output.outside_region == "black" else 1.0
+    yield x
+
+
+def apply_display_stages(image: np.ndarray, mask: np.ndarray | None = None,
+                         params: PipelineParams | None = None, *, fill_outside: bool = True,
+                         report: dict | None = None) -> np.ndarray:
+    """Stages v-vi and the display curve on a value-of-interest scaled attenuation image.
+
+    The display end of the chain, shared by :func:`~.pipeline.run_pipeline`, :func:`~.pipeline.enhance_radiograph`
+    and the napari contrast widget: dynamic-range / latitude reduction
+    (:func:`~napari_dslrxr.core.stages.dynamic_range.reduce_dynamic_range`), multiscale contrast
+    (:func:`~napari_dslrxr.core.stages.contrast.enhance_contrast`), the sigmoid display curve
+    (:func:`~napari_dslrxr.core.stages.dynamic_range.sigmoid_lut`), then the pixels outside the
+    region set to black (0) or white (1) as ``params.output.outside_region`` says.
+
+    Parameters
+    ----------
+    image : ndarray, float32, (H, W)
+        Value-of-interest scaled attenuation, dimensionless: the VOI window maps to 0..1
+        (values outside it are kept). Not modified.
+    mask : ndarray, bool, (H, W), optional
+        Screen region: the stages' statistics and low-passes use only these pixels.
+        None = all pixels.
+    params : PipelineParams, optional
+        Uses ``dynamic_range``, ``contrast`` and ``output.outside_region``.
+    fill_outside : bool
+        Set the pixels outside ``mask`` to the ``outside_region`` value (as the pipeline's
+        output does); False leaves them processed like the rest.
+    report : dict, optional
+        Receives ``display_fit`` (the compression that kept the anatomy off the display's
+        ends) and ``clipped_fraction`` (the share of the anatomy still at pure black or
+        white), as the pipeline's sidecar records them.
+
+    Returns
+    -------
+    ndarray, float32, (H, W)
+        Display values in [0, 1] (a new array).
+    """
+    params = params or PipelineParams()
+    for display in display_steps(image, mask, params, fill_outside, report):
+        pass  # rebinding drops each intermediate as soon as the next stage is done
+    return display
+
+
+def scale_display_radiograph(image: np.ndarray, params: PipelineParams | None = None,
+                             mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """Value-of-interest scaling of a grey display radiograph, inside its collimated field.
+
+    The step before :func:`apply_display_stages` for radiographs that are already log-scaled
+    and bone-bright (CR/DR DICOM after MONOCHROME1 inversion), shared by
+    :func:`~.pipeline.enhance_radiograph` and the napari contrast widget.
+
+    Parameters
+    ----------
+    image : ndarray, (H, W)
+        Grey radiograph (any real dtype), higher = brighter on display. Not modified.
+    params : PipelineParams, optional
+        Uses ``region`` (VOI percentiles, ``detect_collimation``, ``collimation_inset_px``).
+    mask : ndarray, bool, optional
+        Region of interest for the statistics. Default: when ``params.region.detect_collimation``
+        is true, the exposed field found by :func:`~napari_dslrxr.core.stages.collimation.detect_collimation`;
+        None (all pixels) when no collimation is found or detection is off.
+
+    Returns
+    -------
+    scaled : ndarray, float32, (H, W)
+        The VOI window mapped to 0..1 (values outside it kept).
+    mask : ndarray, bool, (H, W) or None
+        The region used.
+    fill_outside : bool
+        True when ``mask`` is a detected collimated field, whose outside the display should
+        shutter (a caller's own mask only restricts the statistics).
+    """
+    x, mask, field, _ = scale_display_field(image, params or PipelineParams(), mask)
+    return x, mask, field is not None
+
+
+def scale_display_field(image: np.ndarray, params: PipelineParams, mask: np.ndarray | None):
+    """:func:`scale_display_radiograph`, also giving the collimated field found (a
+    :class:`~.region.Region`, or None) and the VOI window."""
+    x = np.asarray(image, np.float32).copy()
+    field = None
+    if mask is None and params.region.detect_collimation:
+        found = detect_collimation(x, inset_px=params.region.collimation_inset_px)
+        if found.detected:
+            field, mask = found, found.mask
+    window = scale_to_voi_window(x, x[mask] if mask is not None else x, params)
+    return x, mask, field, window
