@@ -199,7 +199,9 @@ def test_no_rim_at_the_screen_border_with_a_smoothed_flat():
     radiograph = rng.poisson(0.6 * open_beam).astype(np.float32)
     dark = np.zeros_like(flat)
 
-    out = flat_field_correct(radiograph, [flat], [dark], params=FlatFieldParams(flat_smoothing_px=4.0))
+    reference = prepare_flat_reference(radiograph.shape, flats=[flat], darks=[dark],
+                                       params=FlatFieldParams(flat_smoothing_px=4.0))
+    out = apply_flat_field(radiograph, reference)
     lit = screen > 0.5
     from scipy import ndimage as ndi
 
