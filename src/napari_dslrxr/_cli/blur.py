@@ -1,7 +1,7 @@
 """``dslrxr psf fit`` and ``dslrxr psf kernel``: estimate the blur model from edges, sample kernels.
 
 ``psf fit CONFIG.toml -o psf.json`` fits the SABER source + detector model jointly to the edge
-radiographs listed in CONFIG (see :func:`napari_dslrxr.core.psf.edge_fit.load_edge_config`)::
+radiographs listed in CONFIG (see :func:`napari_dslrxr.core.psf.edge_config.load_edge_config`)::
 
     pixel_pitch_mm = 0.05
     detector_core = "generalised"  # optional; or "exponential_power" (SABER's core + tail)

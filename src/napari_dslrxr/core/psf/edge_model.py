@@ -10,7 +10,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from ..errors import ParameterError
-from .model import generalised_mtf
+from .mtf_shapes import generalised_mtf
 
 #: Default spacing (pixels) of the fine grid on which the ESF is evaluated.
 DEFAULT_ESF_STEP_PX = 1.0 / 16.0
@@ -125,7 +125,7 @@ def _part_otf(grid: _EsfGrid, fwhm: dict, component_fwhm_px: float, m1: float, p
 
     Derivatives are taken w.r.t. the log FWHMs ``sx``, ``sy``, the component's log FWHM
     (``"component"``) and the normal angle ``phi``. With ``core_shape = (q, u)`` the component
-    is the generalised core (:func:`~.model.generalised_mtf`) of scale ``component_fwhm_px``,
+    is the generalised core (:func:`~.mtf_shapes.generalised_mtf`) of scale ``component_fwhm_px``,
     with derivatives w.r.t. its log scale (``"component"``), ``"power"`` and ``"linnik"``.
     """
     f = grid.freq

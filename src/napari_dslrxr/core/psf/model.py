@@ -21,136 +21,31 @@ reduction in X-ray imaging", IEEE TIP 2020 (see ``docs/algorithms/psf.md``, sect
   geometry;
 * the blur kernel of a radiograph is ``source PSF (at its magnification) * detector PSF``.
 
-Kernel sampling
----------------
-Kernels are **pixel-area integrated** (each kernel value is the mean of the continuous PSF over
-the detector pixel), computed by supersampling every pixel with an odd factor that grows as the
-component narrows (``ceil(12 / FWHM_px)``, capped at 41). Point sampling at pixel centres, as
-pysaber does, misrepresents components narrower than about 2 px (a 0.5 px FWHM exponential
-point-sampled puts almost all mass in one pixel); area integration also matches the way a
-detector pixel records the edge radiographs the model is fitted on.
-
-The support of each component reaches ``10 * FWHM / 2`` (SABER's cutoff multiplier 10) and is
-**never cropped to an image size**: a long detector tail keeps its full extent, limited only by
-the ``max_radius_px`` argument (default :data:`DEFAULT_MAX_RADIUS_PX`).
+The kernels are sampled by :mod:`.kernel_sampling`, the radial shapes are in :mod:`.mtf_shapes`
+and the file ``psf.json`` is read and written by :mod:`.psf_file`.
 
 All lengths in this module are millimetres unless the name ends in ``_px`` (detector pixels).
 """
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, ParameterError
-from ..io import atomic_write
-
-#: Largest kernel half-width (pixels) when the caller gives none: a 4097 x 4097 kernel.
-DEFAULT_MAX_RADIUS_PX = 2048
-#: Support half-width of a component in units of its FWHM (SABER: 10 x FWHM / 2).
-SUPPORT_FWHM_MULTIPLE = 5.0
-#: Components narrower than this (pixels) are a delta function.
-DELTA_FWHM_PX = 1e-3
-_MAX_SUPERSAMPLING = 41
+from ..errors import ParameterError
+from .kernel_sampling import (_MAX_SUPERSAMPLING, DELTA_FWHM_PX, _centre_crop, _centre_pad, _check_cap, _delta,
+                              _finish, _radius_px, sample_exponential_power)
+from .mtf_shapes import _mtf_cutoff, exponential_power_mtf, generalised_mtf
 
 PSF_FORMAT = "napari-dslrxr psf"
+#: Format version written by :meth:`PSFModel.to_dict` (readable versions: :mod:`.psf_file`).
 PSF_FORMAT_VERSION = 2
-#: Format versions :func:`load_psf` reads (version 1: exponential-power core, source always given).
-READABLE_FORMAT_VERSIONS = (1, 2)
 PARAMETER_NAMES = ("source_fwhm_x_mm", "source_fwhm_y_mm", "detector_fwhm_core_mm",
                    "detector_fwhm_tail_mm", "detector_weight_core")
 #: Parameters of the MTF-defined detector core (format version 2).
 CORE_MTF_NAMES = ("detector_core_mtf_scale_mm", "detector_core_mtf_power", "detector_core_mtf_linnik")
-#: Below this ``u * (f s)^q`` the Linnik MTF and its derivative in ``u`` use their series in ``u``.
-_LINNIK_SERIES_LIMIT = 1e-4
-
-
-def generalised_mtf(x: np.ndarray, power: float, linnik: float, *, derivatives: bool = False):
-    """Radial MTF ``(1 + u x^q)^(-1/u)`` of the generalised detector core (``x = f * scale``).
-
-    A generalised Linnik characteristic function: positive-definite (a PSF that is a positive
-    mixture of stable laws) for ``0 < q <= 2`` and ``u >= 0``. ``u = 0`` is the stretched
-    exponential ``exp(-x^q)`` (the limit), ``u = 1, q = 2`` the Lorentzian ``1 / (1 + x^2)``.
-
-    Parameters
-    ----------
-    x : ndarray
-        Frequency times the scale (``f * s``, dimensionless, >= 0).
-    power, linnik : float
-        ``q`` in ``(0, 2]`` and ``u >= 0``.
-    derivatives : bool
-        Also return ``dM/dlog(s)``, ``dM/dq`` and ``dM/du``.
-
-    Returns
-    -------
-    ndarray, or (ndarray, dict) with keys ``"scale"``, ``"power"``, ``"linnik"``.
-    """
-    x = np.asarray(x, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        z = np.where(x > 0, x, 0.0) ** power
-        uz = linnik * z
-        small = uz < _LINNIK_SERIES_LIMIT
-        if linnik > 0:
-            log_term = np.where(small, z * (1.0 - 0.5 * uz), np.log1p(uz) / linnik)
-        else:
-            log_term = z
-        mtf = np.exp(-log_term)
-        if not derivatives:
-            return mtf
-        dl_dz = 1.0 / (1.0 + uz)
-        if linnik > 0:
-            exact = (uz / (1.0 + uz) - np.log1p(uz)) / (linnik * linnik)
-            dl_du = np.where(small, -0.5 * z * z + (2.0 / 3.0) * linnik * z ** 3, exact)
-        else:
-            dl_du = -0.5 * z * z
-        log_x = np.where(x > 0, np.log(np.where(x > 0, x, 1.0)), 0.0)
-        dl_dq = dl_dz * z * log_x
-        dl_dscale = dl_dz * power * z
-    derivs = {"scale": -mtf * dl_dscale, "power": -mtf * dl_dq, "linnik": -mtf * np.nan_to_num(dl_du)}
-    return mtf, derivs
-
-
-def exponential_power_mtf(nu: np.ndarray, shape_power: float) -> np.ndarray:
-    """Normalised 2-D Fourier transform of ``exp(-r^p)`` at radial frequency ``nu`` (p = 1 or 2)."""
-    if shape_power == 1.0:
-        return (1.0 + (2.0 * np.pi * nu) ** 2) ** -1.5
-    if shape_power == 2.0:
-        return np.exp(-(np.pi * nu) ** 2)
-    raise ParameterError(f"an analytic MTF needs shape_power 1 or 2, got {shape_power}")
-
-
-def _mtf_cutoff(scale: float, power: float, linnik: float, level: float = 1e-5) -> float:
-    """Frequency (inverse units of ``scale``) above which the generalised MTF is below ``level``."""
-    z = -math.log(level) if linnik <= 0 else (level ** -linnik - 1.0) / linnik
-    return z ** (1.0 / power) / scale
-
-
-def fwhm_to_scale(fwhm: float, shape_power: float) -> float:
-    """Scale ``s`` of ``exp(-(s r)^p)`` with the given full width at half maximum.
-
-    Parameters
-    ----------
-    fwhm : float
-        Full width at half maximum (any length unit, > 0).
-    shape_power : float
-        Exponential-power ``p``.
-
-    Returns
-    -------
-    float
-        ``s = 2 ln(2)^(1/p) / fwhm`` in inverse units of ``fwhm``.
-    """
-    return 2.0 * math.log(2.0) ** (1.0 / shape_power) / fwhm
-
-
-def scale_to_fwhm(scale: float, shape_power: float) -> float:
-    """Inverse of :func:`fwhm_to_scale`."""
-    return 2.0 * math.log(2.0) ** (1.0 / shape_power) / scale
 
 
 def magnification_factor(source_to_object_mm: float, source_to_detector_mm: float) -> float:
@@ -170,53 +65,6 @@ def magnification_factor(source_to_object_mm: float, source_to_detector_mm: floa
     return (sdd - sod) / sod
 
 
-def _supersampling(fwhm_px: float) -> int:
-    """Odd sub-samples per pixel and axis so that a component of this FWHM is well integrated."""
-    n = int(math.ceil(12.0 / max(fwhm_px, 1e-6)))
-    n = min(max(n, 1), _MAX_SUPERSAMPLING)
-    return n if n % 2 == 1 else n + 1
-
-
-def _radius_px(fwhm_px: float, max_radius_px: int) -> int:
-    return int(min(math.ceil(SUPPORT_FWHM_MULTIPLE * fwhm_px), max_radius_px))
-
-
-def _delta() -> np.ndarray:
-    return np.ones((1, 1), dtype=np.float64)
-
-
-def sample_exponential_power(fwhm_x_px: float, fwhm_y_px: float, shape_power: float, *,
-                             radius_x_px: int, radius_y_px: int) -> np.ndarray:
-    """Pixel-area-integrated ``exp(-((s_x x)^2 + (s_y y)^2)^(p/2))`` normalised to unit sum.
-
-    Parameters
-    ----------
-    fwhm_x_px, fwhm_y_px : float
-        FWHM along columns and rows, detector pixels (> 0).
-    shape_power : float
-        Exponential-power ``p``.
-    radius_x_px, radius_y_px : int
-        Half-width of the returned array (columns, rows); its shape is
-        ``(2 radius_y_px + 1, 2 radius_x_px + 1)``.
-
-    Returns
-    -------
-    ndarray of float64
-        Centred kernel, sums to 1.
-    """
-    n = _supersampling(min(fwhm_x_px, fwhm_y_px))
-    scale_x = fwhm_to_scale(fwhm_x_px, shape_power)
-    scale_y = fwhm_to_scale(fwhm_y_px, shape_power)
-    offsets = (np.arange(n) + 0.5) / n - 0.5
-    x = (np.arange(-radius_x_px, radius_x_px + 1)[:, None] + offsets[None, :]).ravel()
-    y = (np.arange(-radius_y_px, radius_y_px + 1)[:, None] + offsets[None, :]).ravel()
-    r2 = (scale_y * y[:, None]) ** 2 + (scale_x * x[None, :]) ** 2
-    values = np.exp(-(r2 ** (shape_power / 2.0)))
-    ny, nx = 2 * radius_y_px + 1, 2 * radius_x_px + 1
-    kernel = values.reshape(ny, n, nx, n).sum(axis=(1, 3))
-    return kernel / kernel.sum()
-
-
 def _with_sd(value: float, sd: float | None, unit: str = "") -> str:
     """``value ± sd unit``, or "not determined" when the uncertainty exceeds the value."""
     if sd is not None and np.isfinite(sd) and sd > abs(value):
@@ -227,36 +75,6 @@ def _with_sd(value: float, sd: float | None, unit: str = "") -> str:
 def _plus_minus(value: float, sd: float | None) -> str:
     """``value ± sd`` of a shape parameter (0 is a valid value of ``u``, so no "not determined")."""
     return f"{value:.3g}" + (f" ± {sd:.2g}" if sd is not None and np.isfinite(sd) else "")
-
-
-def _centre_pad(kernel: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    out = np.zeros(shape, dtype=kernel.dtype)
-    r0 = (shape[0] - kernel.shape[0]) // 2
-    c0 = (shape[1] - kernel.shape[1]) // 2
-    out[r0:r0 + kernel.shape[0], c0:c0 + kernel.shape[1]] = kernel
-    return out
-
-
-def _centre_crop(kernel: np.ndarray, radius_px: int) -> np.ndarray:
-    ry = min(radius_px, kernel.shape[0] // 2)
-    rx = min(radius_px, kernel.shape[1] // 2)
-    cy, cx = kernel.shape[0] // 2, kernel.shape[1] // 2
-    return kernel[cy - ry:cy + ry + 1, cx - rx:cx + rx + 1]
-
-
-def _finish(kernel: np.ndarray) -> np.ndarray:
-    """Clip FFT round-off below zero, renormalise to unit sum, float32."""
-    kernel = np.clip(kernel, 0.0, None)
-    kernel = kernel / kernel.sum()
-    return kernel.astype(np.float32)
-
-
-def _check_cap(max_radius_px) -> int:
-    if max_radius_px is None:
-        return DEFAULT_MAX_RADIUS_PX
-    if isinstance(max_radius_px, bool) or not float(max_radius_px).is_integer() or max_radius_px < 0:
-        raise ParameterError(f"max_radius_px must be a non-negative integer, got {max_radius_px!r}")
-    return int(max_radius_px)
 
 
 @dataclass(frozen=True)
@@ -581,71 +399,3 @@ class PSFModel:
         if self.core_from_mtf:
             record["detector_fwhm_core_mm"] = None   # the core is given by its MTF
         return record
-
-
-def save_psf(model: PSFModel, path: str | os.PathLike, *, inputs=()) -> Path:
-    """Write ``model`` to ``path`` (``psf.json``) atomically.
-
-    Parameters
-    ----------
-    model : PSFModel
-    path : path-like
-        Destination; refused when it is one of ``inputs``.
-    inputs : iterable of path-like
-        Input files of the fit (never overwritten).
-
-    Returns
-    -------
-    Path
-    """
-    from ..io.provenance import to_jsonable
-
-    text = json.dumps(to_jsonable(model.to_dict()), indent=2, allow_nan=False) + "\n"
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), inputs=inputs)
-
-
-def load_psf(path: str | os.PathLike) -> PSFModel:
-    """Read and validate a ``psf.json`` written by :func:`save_psf`.
-
-    Raises
-    ------
-    InputError
-        When the file is missing, not JSON, not a PSF file, or a field is missing, ill-typed or
-        out of range (the one-line message names the file and the key).
-    """
-    from ..io import read_structured_file
-
-    path = Path(path)
-    record = read_structured_file(path, what="PSF file", fmt="json")
-    if record.get("format") != PSF_FORMAT:
-        raise InputError(path, f"not a PSF file (expected \"format\": \"{PSF_FORMAT}\")")
-    version = record.get("format_version")
-    if isinstance(version, bool) or version not in READABLE_FORMAT_VERSIONS:
-        raise InputError(path, f"unsupported format_version {version!r} "
-                               f"(this version reads {', '.join(map(str, READABLE_FORMAT_VERSIONS))})")
-    kwargs = {}
-    source_fitted = record.get("source_fitted", True)
-    if not isinstance(source_fitted, bool):
-        raise InputError(path, f"key 'source_fitted' must be true or false, got {source_fitted!r}")
-    kwargs["source_fitted"] = source_fitted
-    keys = ("pixel_pitch_mm",) + PARAMETER_NAMES + ("shape_power",) + (CORE_MTF_NAMES if version >= 2 else ())
-    for key in keys:
-        if key not in record:
-            raise InputError(path, f"missing key {key!r}")
-        value = record[key]
-        if value is None and ((key.startswith("source_fwhm") and not source_fitted)
-                              or key == "detector_fwhm_core_mm"):
-            kwargs[key] = 0.0
-            continue
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InputError(path, f"key {key!r} must be a number, got {value!r}")
-        kwargs[key] = float(value)
-    for key in ("uncertainty", "fit_report"):
-        value = record.get(key, {})
-        if not isinstance(value, dict):
-            raise InputError(path, f"key {key!r} must be an object, got {type(value).__name__}")
-        kwargs[key] = value
-    try:
-        return PSFModel(**kwargs)
-    except ParameterError as exc:
-        raise InputError(path, str(exc)) from None

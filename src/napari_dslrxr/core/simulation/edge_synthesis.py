@@ -92,7 +92,7 @@ def synthesize_edge_image(model: PSFModel, source_to_object_mm: float, source_to
     t = np.arange(-n_half, n_half + 1) * step_px   # odd length, centred: 'same' convolution keeps t = 0
     if model.core_from_mtf:
         # The 1-D line spread of an isotropic PSF is the inverse transform of its radial MTF.
-        from ..psf.model import generalised_mtf
+        from ..psf.mtf_shapes import generalised_mtf
 
         freq = np.fft.rfftfreq(t.size, d=step_px)
         core_mtf = generalised_mtf(freq * model.detector_core_mtf_scale_mm / pitch, model.detector_core_mtf_power,
