@@ -21,8 +21,8 @@ from .neighbourhoods import (
     _window_offsets,
 )
 from ...progress import Steps
-from .noise_model import _fit_mixture, _NoiseModel
-from .params import _FLOAT, ImpulseParams
+from .noise_model import _fit_mixture, _NoiseModel, _shrink_to_prediction
+from .params import _FLOAT, MEDIAN_RESIDUAL_VARIANCE_FACTOR, ImpulseParams
 
 #: Candidates for the exact test are pixels whose residual to the cheap centre-including
 #: median, divided by this, passes the test: the centre-excluded residual is usually larger
@@ -133,6 +133,9 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     # mixture would take those for noise and inflate its variance, so the fit is two-sided.
     model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, polarity=max(polarity, 0),
                          value_range=value_range, iterations=params.em_iterations)
+    if not circular:  # a fit on fine texture that fills the frame (no flat area to fit on)
+        _shrink_to_prediction(model, x, pick, m_fit, MEDIAN_RESIDUAL_VARIANCE_FACTOR[params.window_px],
+                              residual_weight)
     if polarity < 0:
         model.polarity, model.pulse_density = -1, 1.0 / value_range
     del d_fit, m_fit, pick
