@@ -57,6 +57,12 @@ _TEXTURE_OUTER_PX = 6
 _TEXTURE_BUSY_FRACTION = 0.2
 _BUSY_SIGMAS = 3.0
 _TEXTURE_NOISY_FRACTION = 0.35
+#: ...unless the seed stands out that far: at most ``_TEXTURE_BUSY_FRACTION`` of the annulus
+#: above this fraction of the seed's residual (10 times). Texture seeds have residuals like
+#: their annulus's; a weak pulse on noise is never 10 times its annulus, so the count holds
+#: for it; a strong pulse on a frame filled with a mesh (whose annulus is all beyond 3
+#: noise sigmas once the noise is fitted right) is kept.
+_STANDOUT_RELATIVE = 0.1
 
 #: Progress steps of one pass of :func:`_clean_channel`: candidates and exact test, texture
 #: guard, patch growth and replacement.
@@ -344,7 +350,12 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
             noise2 = _FLOAT(max(model.b, model.var_floor))
         around *= around
         noisy = (around > _FLOAT(_BUSY_SIGMAS ** 2) * noise2) & counted
-        busy |= np.count_nonzero(noisy, axis=1) > _TEXTURE_NOISY_FRACTION * n_counted
+        # A seed far above the texture around it (a strong pulse on a mesh) is a pulse
+        # however noisy that texture is; the noise-relative count is for weak seeds.
+        far_above = _FLOAT(_STANDOUT_RELATIVE * _STANDOUT_RELATIVE) * (own * own).astype(_FLOAT)
+        standout = (np.count_nonzero((around > far_above[:, None]) & counted, axis=1)
+                    <= _TEXTURE_BUSY_FRACTION * n_counted)
+        busy |= (np.count_nonzero(noisy, axis=1) > _TEXTURE_NOISY_FRACTION * n_counted) & ~standout
         out[start:start + chunk] = busy & (n_counted * 3 >= dr.size)
     return out
 
