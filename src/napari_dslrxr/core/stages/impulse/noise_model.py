@@ -180,56 +180,77 @@ _PREDICTOR_REACH_PX = 2
 _PREDICTOR_SAMPLES = 32768
 
 
-def _prediction_residual(x: np.ndarray, pick: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Residual of a linear predictor of each pixel from its 5x5 neighbours (centre excluded).
+@dataclass
+class _Predictor:
+    """A linear predictor of each pixel from its 5x5 neighbours (centre excluded).
 
-    The weights are fitted by least squares over the image (a subsample of ``pick``, flat
-    indices). Periodic texture (a line pattern, a mesh, a grid: sums of a few complex
-    exponentials) is predicted exactly by such a filter, noise is not: the residual's
-    variance is the pixel noise times ``1 + sum(w^2)``, whatever the texture. Returns (the
-    sample's positions in ``pick``, their residuals, ``1 + sum(w^2)``), float64.
+    ``weights``: one per offset of ``offsets`` (row, column arrays), then the intercept;
+    ``noise_gain``: ``1 + sum(w^2)``, the variance of the residual on white noise of unit
+    variance. Periodic texture (a line pattern, a mesh, a grid: sums of a few complex
+    exponentials) is predicted exactly by such a filter, noise and pulses are not.
     """
-    from .neighbourhoods import _flat_indices, _subsample_indices, _window_offsets
 
-    at = _subsample_indices(pick.size, _PREDICTOR_SAMPLES)
-    sample = pick[at]
-    dr, dc = _window_offsets(2 * _PREDICTOR_REACH_PX + 1)
-    off_centre = (dr != 0) | (dc != 0)
-    rows, cols = np.divmod(sample, x.shape[1])
-    around = np.ascontiguousarray(x).ravel()[_flat_indices(rows, cols, dr[off_centre], dc[off_centre],
-                                                           x.shape)].astype(np.float64)
-    centre = x.ravel()[sample].astype(np.float64)
-    design = np.column_stack([around, np.ones(sample.size)])
-    weights = np.linalg.lstsq(design, centre, rcond=None)[0]
-    return at, centre - design @ weights, 1.0 + float(np.sum(weights[:-1] ** 2))
+    weights: np.ndarray
+    offsets: tuple[np.ndarray, np.ndarray]
+    noise_gain: float
+
+    @classmethod
+    def fitted(cls, x: np.ndarray, pixels: np.ndarray) -> "_Predictor":
+        """Least-squares weights over ``pixels`` (flat indices; a regular subsample is used)."""
+        from .neighbourhoods import _subsample_indices, _window_offsets
+
+        dr, dc = _window_offsets(2 * _PREDICTOR_REACH_PX + 1)
+        off_centre = (dr != 0) | (dc != 0)
+        predictor = cls(np.zeros(int(off_centre.sum()) + 1), (dr[off_centre], dc[off_centre]), 1.0)
+        sample = pixels[_subsample_indices(pixels.size, _PREDICTOR_SAMPLES)]
+        design = predictor._design(x, sample)
+        predictor.weights = np.linalg.lstsq(design, x.ravel()[sample].astype(np.float64), rcond=None)[0]
+        predictor.noise_gain = 1.0 + float(np.sum(predictor.weights[:-1] ** 2))
+        return predictor
+
+    def _design(self, x: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        from .neighbourhoods import _flat_indices
+
+        rows, cols = np.divmod(pixels, x.shape[1])
+        around = np.ascontiguousarray(x).ravel()[_flat_indices(rows, cols, *self.offsets, x.shape)]
+        return np.column_stack([around.astype(np.float64), np.ones(pixels.size)])
+
+    def residual_at(self, x: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """Pixel value minus its prediction at ``pixels`` (flat indices), float64."""
+        return x.ravel()[pixels].astype(np.float64) - self._design(x, pixels) @ self.weights
 
 
 def _shrink_to_prediction(model: _NoiseModel, x: np.ndarray, pick: np.ndarray, level: np.ndarray,
-                          residual_factor: float, weight: np.ndarray | None = None) -> float:
+                          residual_factor: float, weight: np.ndarray | None = None) -> "_Predictor | None":
     """Shrink a noise model fitted on texture to the noise the prediction residual shows.
 
     The model is fitted on residuals to a median, which fine periodic texture (2-5 px)
     dominates when it fills the frame: there is no flat area to fit on, and the fitted
     noise is then hundreds of times too wide, which makes the pulse test degenerate
     (everything a pulse) and lifts the texture guard's noise floor above the texture. The
-    residual of a linear predictor (:func:`_prediction_residual`) is free of such texture.
-    Where the model's variance (per pixel: ``model.variance / residual_factor``) is more
-    than :data:`_INFLATION_LIMIT` times what that residual supports (robustly, so pulses
-    do not count), ``a``, ``b`` and the floor are scaled down to it. ``level``: the
-    detection median of each pixel of ``pick`` (photon-counting variance); ``weight``:
-    the channel's residual weight (constant-variance channels). Returns the scale applied
-    (1.0: unchanged).
+    residual of a linear predictor (:class:`_Predictor`, fitted on ``pick``) is free of
+    such texture. Where the model's variance (per pixel: ``model.variance /
+    residual_factor``) is more than :data:`_INFLATION_LIMIT` times what that residual
+    supports (robustly, so pulses do not count), ``a``, ``b`` and the floor are scaled
+    down to it. ``level``: the detection median of each pixel of ``pick``
+    (photon-counting variance); ``weight``: the channel's residual weight
+    (constant-variance channels). Returns the predictor when the model was shrunk (the
+    frame is texture throughout), else None.
     """
     if pick.size < 256:
-        return 1.0
-    at, residual, noise_gain = _prediction_residual(x, pick)
+        return None
+    predictor = _Predictor.fitted(x, pick)
+    from .neighbourhoods import _subsample_indices
+
+    at = _subsample_indices(pick.size, _PREDICTOR_SAMPLES)
+    residual = predictor.residual_at(x, pick[at])
     if weight is not None:
         residual = residual * weight.ravel()[pick[at]]
     pixel_variance = model.variance(level[at]) / residual_factor
-    scale = robust_sigma(residual / np.sqrt(pixel_variance * noise_gain), center=0.0) ** 2
+    scale = robust_sigma(residual / np.sqrt(pixel_variance * predictor.noise_gain), center=0.0) ** 2
     if not (0.0 < scale < 1.0 / _INFLATION_LIMIT):
-        return 1.0
+        return None
     model.a *= scale
     model.b *= scale
     model.var_floor *= scale
-    return scale
+    return predictor
