@@ -172,10 +172,10 @@ def test_fine_texture_without_pulses_is_not_touched(rng, kind, period_px, angle_
 
 
 #: Flagged share allowed on a frame filled with a mesh, per path. The target is 0.05 %; the
-#: colour paths do not reach it everywhere yet (measured on these meshes: HSV 0.02-0.10 %,
-#: CFA planes 0.02-1.6 %); before the noise fit was checked against a predictor's residual,
-#: 14-44 % of such frames were flagged in every path.
-_FULL_MESH_LIMIT = {"grey": 0.0005, "hsv": 0.0015, "cfa": 0.02}
+#: colour paths do not reach it everywhere yet (measured on these three meshes: HSV
+#: 0.03-0.10 %, CFA planes 0-0.15 %); before the noise fit was checked against a
+#: predictor's residual, up to 42 % (grey, HSV) and 56 % (CFA) of such frames were flagged.
+_FULL_MESH_LIMIT = {"grey": 0.0005, "hsv": 0.0015, "cfa": 0.002}
 
 
 @pytest.mark.parametrize("period_px, period2_px, angle_deg", [(5.25, 4.09, 78.0), (2.72, 4.52, 74.0),
