@@ -195,18 +195,27 @@ class _Predictor:
     noise_gain: float
 
     @classmethod
-    def fitted(cls, x: np.ndarray, pixels: np.ndarray) -> "_Predictor":
-        """Least-squares weights over ``pixels`` (flat indices; a regular subsample is used)."""
+    def fitted(cls, x: np.ndarray, pixels: np.ndarray) -> tuple["_Predictor", np.ndarray, np.ndarray]:
+        """Least-squares weights over ``pixels`` (flat indices; a regular subsample of them).
+
+        Returns (the predictor, the subsample's positions in ``pixels``, its residuals)."""
         from .neighbourhoods import _subsample_indices, _window_offsets
 
         dr, dc = _window_offsets(2 * _PREDICTOR_REACH_PX + 1)
         off_centre = (dr != 0) | (dc != 0)
         predictor = cls(np.zeros(int(off_centre.sum()) + 1), (dr[off_centre], dc[off_centre]), 1.0)
-        sample = pixels[_subsample_indices(pixels.size, _PREDICTOR_SAMPLES)]
+        at = _subsample_indices(pixels.size, _PREDICTOR_SAMPLES)
+        sample = pixels[at]
         design = predictor._design(x, sample)
-        predictor.weights = np.linalg.lstsq(design, x.ravel()[sample].astype(np.float64), rcond=None)[0]
+        centre = x.ravel()[sample].astype(np.float64)
+        # Normal equations (25x25; the SVD solver took 0.2-0.5 s on a loaded machine), with a
+        # vanishing ridge so that a constant image still has a solution. einsum, not BLAS:
+        # a few ms on one core, where waking BLAS threads cost more than the sums.
+        gram = np.einsum("ij,ik->jk", design, design)
+        gram[np.diag_indices_from(gram)] += 1e-9 * max(float(np.trace(gram)), 1e-30) / gram.shape[0]
+        predictor.weights = np.linalg.solve(gram, np.einsum("ij,i->j", design, centre))
         predictor.noise_gain = 1.0 + float(np.sum(predictor.weights[:-1] ** 2))
-        return predictor
+        return predictor, at, centre - np.einsum("ij,j->i", design, predictor.weights)
 
     def _design(self, x: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         from .neighbourhoods import _flat_indices
@@ -217,7 +226,7 @@ class _Predictor:
 
     def residual_at(self, x: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """Pixel value minus its prediction at ``pixels`` (flat indices), float64."""
-        return x.ravel()[pixels].astype(np.float64) - self._design(x, pixels) @ self.weights
+        return x.ravel()[pixels].astype(np.float64) - np.einsum("ij,j->i", self._design(x, pixels), self.weights)
 
 
 def _shrink_to_prediction(model: _NoiseModel, x: np.ndarray, pick: np.ndarray, level: np.ndarray,
@@ -239,11 +248,7 @@ def _shrink_to_prediction(model: _NoiseModel, x: np.ndarray, pick: np.ndarray, l
     """
     if pick.size < 256:
         return None
-    predictor = _Predictor.fitted(x, pick)
-    from .neighbourhoods import _subsample_indices
-
-    at = _subsample_indices(pick.size, _PREDICTOR_SAMPLES)
-    residual = predictor.residual_at(x, pick[at])
+    predictor, at, residual = _Predictor.fitted(x, pick)
     if weight is not None:
         residual = residual * weight.ravel()[pick[at]]
     pixel_variance = model.variance(level[at]) / residual_factor
