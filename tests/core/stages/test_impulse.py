@@ -171,6 +171,39 @@ def test_fine_texture_without_pulses_is_not_touched(rng, kind, period_px, angle_
     assert np.count_nonzero(found & truth) >= 0.6 * truth.sum()
 
 
+#: Flagged share allowed on a frame filled with a mesh, per path. The target is 0.05 %; the
+#: colour paths do not reach it everywhere yet (measured on these three meshes: HSV
+#: 0.03-0.10 %, CFA planes 0-0.15 %); before the noise fit was checked against a
+#: predictor's residual, up to 42 % (grey, HSV) and 56 % (CFA) of such frames were flagged.
+_FULL_MESH_LIMIT = {"grey": 0.0005, "hsv": 0.0015, "cfa": 0.002}
+
+
+@pytest.mark.parametrize("period_px, period2_px, angle_deg", [(5.25, 4.09, 78.0), (2.72, 4.52, 74.0),
+                                                             (3.49, 3.26, 97.0)])
+def test_frame_filled_with_a_mesh_is_not_touched(period_px, period2_px, angle_deg):
+    """No flat area to fit the noise on: a mesh (60 % modulation) over the whole frame, grey,
+    tinted RGB (HSV path) and the CFA planes of its Bayer mosaic; then strong pulses on the
+    grey frame are still found."""
+    rng = np.random.default_rng(20261122)
+    pattern = (grating((256, 256), period_px, angle_deg, rng.uniform(0, 6.3))
+               * grating((256, 256), period2_px, angle_deg + 90, rng.uniform(0, 6.3)))
+    light = 1500.0 * pattern / pattern.max()
+    tint = np.array([0.35, 1.0, 0.15])
+    grey = np.clip(np.rint(poisson_image(light, 1.0, rng)), 0, 65535).astype(np.uint16)
+    rgb = np.clip(np.rint(poisson_image(light[..., None] * tint, 1.0, rng)), 0, 65535).astype(np.uint16)
+    scene = poisson_image(light[..., None] * tint, 1.0, rng)
+    planes = np.stack([scene[0::2, 0::2, 0], scene[0::2, 1::2, 1], scene[1::2, 0::2, 1],
+                       scene[1::2, 1::2, 2]]).astype(np.float32)
+    flagged = {"grey": remove_impulses(grey).any_mask().mean(), "hsv": remove_impulses(rgb).any_mask().mean(),
+               "cfa": remove_impulses_cfa(planes).any_mask().mean()}
+    for path, limit in _FULL_MESH_LIMIT.items():
+        assert flagged[path] <= limit, (path, flagged)
+    dirty, truth = add_patches(grey, rng, 40, (6000, 12000), sizes=(1, 2, 3))
+    found = remove_impulses(np.clip(dirty, 0, 65535).astype(np.uint16)).masks["grey"]
+    recall, precision = recall_precision(found, truth)
+    assert recall >= 0.95 and precision >= 0.95, (recall, precision)
+
+
 @pytest.mark.parametrize("spots", ["dark", "both"])
 def test_dark_clusters_are_filled_from_outside(rng, spots):
     """Dark clusters of 2-6 px (a hit turned dark by normalisation): every pixel found and

@@ -21,8 +21,8 @@ from .neighbourhoods import (
     _window_offsets,
 )
 from ...progress import Steps
-from .noise_model import _fit_mixture, _NoiseModel
-from .params import _FLOAT, ImpulseParams
+from .noise_model import _fit_mixture, _NoiseModel, _Predictor, _shrink_to_prediction
+from .params import _FLOAT, MEDIAN_RESIDUAL_VARIANCE_FACTOR, ImpulseParams
 
 #: Candidates for the exact test are pixels whose residual to the cheap centre-including
 #: median, divided by this, passes the test: the centre-excluded residual is usually larger
@@ -57,6 +57,12 @@ _TEXTURE_OUTER_PX = 6
 _TEXTURE_BUSY_FRACTION = 0.2
 _BUSY_SIGMAS = 3.0
 _TEXTURE_NOISY_FRACTION = 0.35
+#: ...unless the seed stands out that far: at most ``_TEXTURE_BUSY_FRACTION`` of the annulus
+#: above this fraction of the seed's residual (10 times). Texture seeds have residuals like
+#: their annulus's; a weak pulse on noise is never 10 times its annulus, so the count holds
+#: for it; a strong pulse on a frame filled with a mesh (whose annulus is all beyond 3
+#: noise sigmas once the noise is fitted right) is kept.
+_STANDOUT_RELATIVE = 0.1
 
 #: Progress steps of one pass of :func:`_clean_channel`: candidates and exact test, texture
 #: guard, patch growth and replacement.
@@ -133,6 +139,11 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     # mixture would take those for noise and inflate its variance, so the fit is two-sided.
     model = _fit_mixture(d_fit, m_fit, photon_counting=photon_counting, polarity=max(polarity, 0),
                          value_range=value_range, iterations=params.em_iterations)
+    # A fit on fine texture that fills the frame (no flat area to fit on) is shrunk; seeds
+    # must then also stand out from the texture's own prediction.
+    residual_factor = MEDIAN_RESIDUAL_VARIANCE_FACTOR[params.window_px]
+    predictor = None if circular else _shrink_to_prediction(model, x, pick, m_fit, residual_factor,
+                                                            residual_weight)
     if polarity < 0:
         model.polarity, model.pulse_density = -1, 1.0 / value_range
     del d_fit, m_fit, pick
@@ -152,6 +163,9 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         if valid_flat is not None:
             candidates = candidates[valid_flat[candidates]]
         seeds = _exact_test(x, candidates, model, params, circular, residual_weight)
+        if predictor is not None:
+            seeds = seeds[_unpredicted(x, seeds, predictor, model, params, fast_residual, residual_weight,
+                                       residual_factor)]
         steps.advance()
         seeds = seeds[~_in_texture(fast_residual, seeds, x, model, check=steps.check)]
         steps.advance()
@@ -341,9 +355,34 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
             noise2 = _FLOAT(max(model.b, model.var_floor))
         around *= around
         noisy = (around > _FLOAT(_BUSY_SIGMAS ** 2) * noise2) & counted
-        busy |= np.count_nonzero(noisy, axis=1) > _TEXTURE_NOISY_FRACTION * n_counted
+        # A seed far above the texture around it (a strong pulse on a mesh) is a pulse
+        # however noisy that texture is; the noise-relative count is for weak seeds.
+        far_above = _FLOAT(_STANDOUT_RELATIVE * _STANDOUT_RELATIVE) * (own * own).astype(_FLOAT)
+        standout = (np.count_nonzero((around > far_above[:, None]) & counted, axis=1)
+                    <= _TEXTURE_BUSY_FRACTION * n_counted)
+        busy |= (np.count_nonzero(noisy, axis=1) > _TEXTURE_NOISY_FRACTION * n_counted) & ~standout
         out[start:start + chunk] = busy & (n_counted * 3 >= dr.size)
     return out
+
+
+def _unpredicted(x: np.ndarray, seeds: np.ndarray, predictor: "_Predictor", model: _NoiseModel,
+                 params: ImpulseParams, fast_residual: _FullMap, residual_weight: np.ndarray | None,
+                 residual_factor: float) -> np.ndarray:
+    """True for seeds that are pulses by their residual to the texture's linear prediction.
+
+    On a frame filled with fine texture the median residual holds texture and noise
+    together; where the texture's amplitude is a few noise sigmas (a dim channel, or a CFA
+    plane on which the scene's pattern lands aliased) their sum passes the test at many
+    places, in neighbourhoods the texture guard cannot tell from noise. The predictor
+    removes the texture: its residual, rescaled to the variance of the median residual the
+    model describes, takes the same posterior test (at the predicted level).
+    """
+    d = predictor.residual_at(x, seeds)
+    level = x.ravel()[seeds].astype(np.float64) - d  # the prediction: the texture's level there
+    d *= math.sqrt(residual_factor / predictor.noise_gain)
+    if residual_weight is not None:
+        d *= residual_weight.ravel()[seeds]
+    return model.is_pulse(d, level, params.posterior_threshold)
 
 
 def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, params: ImpulseParams,

@@ -164,3 +164,98 @@ def _count_variance(values: np.ndarray, model: "_NoiseModel | None") -> np.ndarr
     if below is not None:
         out[below] = np.maximum(scaled_below, _FLOAT(1e-12))
     return out
+
+
+#: The fitted noise is shrunk when it is more than this many times (in variance) what the
+#: prediction residual supports (:func:`_shrink_to_prediction`). Measured on frames filled
+#: with a mesh (2.2-5.3 px periods): 200-10 000 times; a correct fit on noise is near 1, and
+#: noise correlated between neighbours (demosaicing) could make the prediction up to a few
+#: times better than the truth, so the margin is wide.
+_INFLATION_LIMIT = 10.0
+#: Half-width (px) of the neighbourhood of the linear predictor (5x5 minus the centre: 24
+#: weights; a mesh of two crossing gratings is a sum of at most 9 complex exponentials,
+#: each of which the predictor must reproduce).
+_PREDICTOR_REACH_PX = 2
+#: Pixels the predictor's weights are fitted on and that its residual is read at.
+_PREDICTOR_SAMPLES = 32768
+
+
+@dataclass
+class _Predictor:
+    """A linear predictor of each pixel from its 5x5 neighbours (centre excluded).
+
+    ``weights``: one per offset of ``offsets`` (row, column arrays), then the intercept;
+    ``noise_gain``: ``1 + sum(w^2)``, the variance of the residual on white noise of unit
+    variance. Periodic texture (a line pattern, a mesh, a grid: sums of a few complex
+    exponentials) is predicted exactly by such a filter, noise and pulses are not.
+    """
+
+    weights: np.ndarray
+    offsets: tuple[np.ndarray, np.ndarray]
+    noise_gain: float
+
+    @classmethod
+    def fitted(cls, x: np.ndarray, pixels: np.ndarray) -> tuple["_Predictor", np.ndarray, np.ndarray]:
+        """Least-squares weights over ``pixels`` (flat indices; a regular subsample of them).
+
+        Returns (the predictor, the subsample's positions in ``pixels``, its residuals)."""
+        from .neighbourhoods import _subsample_indices, _window_offsets
+
+        dr, dc = _window_offsets(2 * _PREDICTOR_REACH_PX + 1)
+        off_centre = (dr != 0) | (dc != 0)
+        predictor = cls(np.zeros(int(off_centre.sum()) + 1), (dr[off_centre], dc[off_centre]), 1.0)
+        at = _subsample_indices(pixels.size, _PREDICTOR_SAMPLES)
+        sample = pixels[at]
+        design = predictor._design(x, sample)
+        centre = x.ravel()[sample].astype(np.float64)
+        # Normal equations (25x25; the SVD solver took 0.2-0.5 s on a loaded machine), with a
+        # vanishing ridge so that a constant image still has a solution. einsum, not BLAS:
+        # a few ms on one core, where waking BLAS threads cost more than the sums.
+        gram = np.einsum("ij,ik->jk", design, design)
+        gram[np.diag_indices_from(gram)] += 1e-9 * max(float(np.trace(gram)), 1e-30) / gram.shape[0]
+        predictor.weights = np.linalg.solve(gram, np.einsum("ij,i->j", design, centre))
+        predictor.noise_gain = 1.0 + float(np.sum(predictor.weights[:-1] ** 2))
+        return predictor, at, centre - np.einsum("ij,j->i", design, predictor.weights)
+
+    def _design(self, x: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        from .neighbourhoods import _flat_indices
+
+        rows, cols = np.divmod(pixels, x.shape[1])
+        around = np.ascontiguousarray(x).ravel()[_flat_indices(rows, cols, *self.offsets, x.shape)]
+        return np.column_stack([around.astype(np.float64), np.ones(pixels.size)])
+
+    def residual_at(self, x: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """Pixel value minus its prediction at ``pixels`` (flat indices), float64."""
+        return x.ravel()[pixels].astype(np.float64) - np.einsum("ij,j->i", self._design(x, pixels), self.weights)
+
+
+def _shrink_to_prediction(model: _NoiseModel, x: np.ndarray, pick: np.ndarray, level: np.ndarray,
+                          residual_factor: float, weight: np.ndarray | None = None) -> "_Predictor | None":
+    """Shrink a noise model fitted on texture to the noise the prediction residual shows.
+
+    The model is fitted on residuals to a median, which fine periodic texture (2-5 px)
+    dominates when it fills the frame: there is no flat area to fit on, and the fitted
+    noise is then hundreds of times too wide, which makes the pulse test degenerate
+    (everything a pulse) and lifts the texture guard's noise floor above the texture. The
+    residual of a linear predictor (:class:`_Predictor`, fitted on ``pick``) is free of
+    such texture. Where the model's variance (per pixel: ``model.variance /
+    residual_factor``) is more than :data:`_INFLATION_LIMIT` times what that residual
+    supports (robustly, so pulses do not count), ``a``, ``b`` and the floor are scaled
+    down to it. ``level``: the detection median of each pixel of ``pick``
+    (photon-counting variance); ``weight``: the channel's residual weight
+    (constant-variance channels). Returns the predictor when the model was shrunk (the
+    frame is texture throughout), else None.
+    """
+    if pick.size < 256:
+        return None
+    predictor, at, residual = _Predictor.fitted(x, pick)
+    if weight is not None:
+        residual = residual * weight.ravel()[pick[at]]
+    pixel_variance = model.variance(level[at]) / residual_factor
+    scale = robust_sigma(residual / np.sqrt(pixel_variance * predictor.noise_gain), center=0.0) ** 2
+    if not (0.0 < scale < 1.0 / _INFLATION_LIMIT):
+        return None
+    model.a *= scale
+    model.b *= scale
+    model.var_floor *= scale
+    return predictor
