@@ -342,28 +342,54 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
 _LIT_FRACTION = 0.5
 
 
+def _normalised_blur(block: np.ndarray, lit: np.ndarray, blur) -> np.ndarray:
+    """Blur of ``block`` (H, W, C) within ``lit`` and within the rest, never across the border
+    between them: on each side the blur of that side's values over the blur of its mask."""
+    weight = blur(lit.astype(np.float32))[..., None]
+    inside = blur(np.where(lit[..., None], block, np.float32(0))).reshape(block.shape)
+    rest = blur(block).reshape(block.shape) - inside  # the blur is linear
+    inside /= np.maximum(weight, np.float32(1e-6))
+    rest /= np.maximum(1 - weight, np.float32(1e-6))
+    return np.where(lit[..., None], inside, rest)
+
+
 def _smooth_within_lit_area(denominator: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Gaussian smoothing of ``F - D`` that averages lit pixels only (normalised convolution).
+    """Gaussian smoothing of ``F - D`` within the lit area and within the rest, never across
+    the border between them (normalised convolution on each side).
 
     A plain blur mixes the dark room into the flat within a few sigma of the screen border, so
     the denominator sinks there and the corrected frame shows a bright rim inside the border
-    (16 % on the sample frame at 4 px). Dividing the blurred lit part by the blurred lit mask
-    keeps the border's level; pixels outside the lit area take the plain blur.
+    (16 % on the sample frame at 4 px). The border is where the channel sum crosses half its
+    bright level (the same border in every channel). Away from it both sides' blurs equal the
+    plain blur, so only the tiles the border crosses are smoothed again, each with a margin of
+    the kernel's radius (exact, and a small cost on a whole frame).
     """
     def blur(a: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(a, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
 
-    chans = denominator.reshape(denominator.shape[0], denominator.shape[1], -1)
-    out = np.empty_like(chans)
-    for c in range(chans.shape[2]):
-        plane = np.ascontiguousarray(chans[..., c])
-        step = max(1, int(np.sqrt(plane.size / 1_000_000)))
-        top = float(np.percentile(plane[::step, ::step], 99.5))
-        lit = (plane > _LIT_FRACTION * top).astype(np.float32)
-        weight = blur(lit)
-        smooth_lit = blur(plane * lit)
-        inside = lit > 0
-        out[..., c] = np.where(inside, smooth_lit / np.maximum(weight, 1e-6), blur(plane))
+    h, w = denominator.shape[:2]
+    out = blur(denominator).reshape(h, w, -1)
+    chans = denominator.reshape(h, w, -1)
+    level = chans[..., 0].copy()
+    for c in range(1, chans.shape[2]):
+        level += chans[..., c]
+    step = max(1, int(np.sqrt(h * w / 1_000_000)))
+    lit = level > _LIT_FRACTION * float(np.percentile(level[::step, ::step], 99.5))
+    del level
+    share = blur(lit.astype(np.float32))  # share of lit pixels under the kernel
+    crossed = (share > 1e-4) & (share < 1 - 1e-4)
+    del share
+    margin = int(np.ceil(4 * sigma_px)) + 2  # OpenCV's kernel radius is about 4 sigma
+    tile = 128
+    for r0 in range(0, h, tile):
+        for c0 in range(0, w, tile):
+            r1, c1 = min(r0 + tile, h), min(c0 + tile, w)
+            if not crossed[r0:r1, c0:c1].any():
+                continue
+            R0, C0 = max(0, r0 - margin), max(0, c0 - margin)
+            R1, C1 = min(h, r1 + margin), min(w, c1 + margin)
+            smoothed = _normalised_blur(np.ascontiguousarray(chans[R0:R1, C0:C1]), lit[R0:R1, C0:C1], blur)
+            out[r0:r1, c0:c1] = smoothed[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
     return out.reshape(denominator.shape)
 
 
