@@ -342,27 +342,26 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
 _LIT_FRACTION = 0.5
 
 
-def _normalised_blur(block: np.ndarray, lit: np.ndarray, blur) -> np.ndarray:
-    """Blur of ``block`` (H, W, C) within ``lit`` and within the rest, never across the border
-    between them: on each side the blur of that side's values over the blur of its mask."""
+def _lit_blur(block: np.ndarray, lit: np.ndarray, blur) -> np.ndarray:
+    """Blur of ``block`` (H, W, C) over its ``lit`` pixels only (normalised convolution)."""
     weight = blur(lit.astype(np.float32))[..., None]
     inside = blur(np.where(lit[..., None], block, np.float32(0))).reshape(block.shape)
-    rest = blur(block).reshape(block.shape) - inside  # the blur is linear
-    inside /= np.maximum(weight, np.float32(1e-6))
-    rest /= np.maximum(1 - weight, np.float32(1e-6))
-    return np.where(lit[..., None], inside, rest)
+    return inside / np.maximum(weight, np.float32(1e-6))
 
 
 def _smooth_within_lit_area(denominator: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Gaussian smoothing of ``F - D`` within the lit area and within the rest, never across
-    the border between them (normalised convolution on each side).
+    """Gaussian smoothing of ``F - D`` that, on the lit screen, averages lit pixels only
+    (normalised convolution); pixels outside it keep the plain blur.
 
     A plain blur mixes the dark room into the flat within a few sigma of the screen border, so
     the denominator sinks there and the corrected frame shows a bright rim inside the border
     (16 % on the sample frame at 4 px). The border is where the channel sum crosses half its
-    bright level (the same border in every channel). Away from it both sides' blurs equal the
-    plain blur, so only the tiles the border crosses are smoothed again, each with a margin of
-    the kernel's radius (exact, and a small cost on a whole frame).
+    bright level (the same border in every channel). Outside it the plain blur stays: the
+    penumbra and the room beside the border hold the screen's spilled light in the radiograph
+    as in the flat, and a room-only average there would divide that light by the room's level
+    (a bright band round the screen). Away from the border the lit average equals the plain
+    blur, so only the tiles the border crosses are smoothed again, each with a margin of the
+    kernel's radius (exact, and a small cost on a whole frame).
     """
     def blur(a: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(a, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
@@ -388,8 +387,9 @@ def _smooth_within_lit_area(denominator: np.ndarray, sigma_px: float) -> np.ndar
                 continue
             R0, C0 = max(0, r0 - margin), max(0, c0 - margin)
             R1, C1 = min(h, r1 + margin), min(w, c1 + margin)
-            smoothed = _normalised_blur(np.ascontiguousarray(chans[R0:R1, C0:C1]), lit[R0:R1, C0:C1], blur)
-            out[r0:r1, c0:c1] = smoothed[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
+            smoothed = _lit_blur(np.ascontiguousarray(chans[R0:R1, C0:C1]), lit[R0:R1, C0:C1], blur)
+            keep = lit[r0:r1, c0:c1]
+            out[r0:r1, c0:c1][keep] = smoothed[r0 - R0:r1 - R0, c0 - C0:c1 - C0][keep]
     return out.reshape(denominator.shape)
 
 
