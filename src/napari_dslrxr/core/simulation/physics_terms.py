@@ -164,6 +164,16 @@ class ChainState:
     signal: np.ndarray | None = None
     transfer: np.ndarray | None = None
     light: np.ndarray | None = None
+    #: ``(light, gradient)`` from the model's light cache: ``gradient()`` is ``np.gradient`` of
+    #: that light, computed once per cached light (Jacobian columns of the optics and camera
+    #: stages share it)
+    cached_light_gradient: tuple | None = None
+
+    def light_gradient(self) -> tuple[np.ndarray, np.ndarray]:
+        """``np.gradient(light)`` (rows, columns), from the cache while ``light`` is unchanged."""
+        if self.cached_light_gradient is not None and self.cached_light_gradient[0] is self.light:
+            return self.cached_light_gradient[1]()
+        return tuple(np.gradient(self.light))
 
 
 @dataclass(frozen=True)

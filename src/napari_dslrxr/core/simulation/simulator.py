@@ -377,8 +377,16 @@ class ChainModel:
             for term, params in by_stage.get("psf", []):
                 term.apply(state, params)
             state.light = _inverse_spectrum(spectrum * state.transfer, g)
-            self._light_cache = (light_key, state.light)
-        state.light = state.light.copy()
+            self._light_cache = (light_key, state.light, {})
+        light, memo = self._light_cache[1], self._light_cache[2]
+
+        def gradient():
+            if "gradient" not in memo:
+                memo["gradient"] = tuple(np.gradient(light))
+            return memo["gradient"]
+
+        state.light = light.copy()
+        state.cached_light_gradient = (state.light, gradient)
         for stage in ("optics", "camera"):
             for term, params in by_stage.get(stage, []):
                 term.apply(state, params)
