@@ -319,15 +319,27 @@ class ChainModel:
             term.apply(state, params)
         fine_t = np.exp(-state.path)
         fine_tp = fine_t * state.path
+        memo: dict = {}
+
+        def scatter_source() -> np.ndarray:
+            # only the scatter term reads T·p: its fine-grid blur (the costly step of a binned
+            # fit) is done when first asked for, once per transmission
+            if "tp" not in memo:
+                memo["tp"] = self._to_coarse(fine_tp)
+            return memo["tp"]
+
+        out = (self._to_coarse(fine_t), scatter_source)
+        self._path_cache = (key, out)
+        return out
+
+    def _to_coarse(self, fine: np.ndarray) -> np.ndarray:
+        """Pre-blur on the fine grid (binned or supersampled fits), then block-average."""
         if self.pre_blur_px > 0 and self.grid.fine_factor > 1:
             from scipy import ndimage
 
             sigma_fine = self.pre_blur_px * self.grid.fine_factor
-            fine_t = ndimage.gaussian_filter(fine_t, sigma_fine, mode="reflect", truncate=3.5)
-            fine_tp = ndimage.gaussian_filter(fine_tp, sigma_fine, mode="reflect", truncate=3.5)
-        out = (block_mean(fine_t, self.grid.fine_factor), block_mean(fine_tp, self.grid.fine_factor))
-        self._path_cache = (key, out)
-        return out
+            fine = ndimage.gaussian_filter(fine, sigma_fine, mode="reflect", truncate=3.5)
+        return block_mean(fine, self.grid.fine_factor)
 
     def expected(self, base: dict[str, float], terms: list[tuple[PhysicsTerm, dict]] = ()) -> np.ndarray:
         """Expected recording in DN (float64, coarse shape).
