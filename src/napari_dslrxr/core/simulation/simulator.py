@@ -309,6 +309,7 @@ class ChainModel:
         self._path_cache: tuple | None = None
         self._spectrum_cache: tuple | None = None
         self._light_cache: tuple | None = None
+        self._transfer_cache: tuple | None = None
 
     def _transmission(self, mu: float, path_terms: list[tuple[PhysicsTerm, dict]]):
         key = (mu, tuple((t.name, tuple(sorted(p.items()))) for t, p in path_terms))
@@ -334,12 +335,22 @@ class ChainModel:
 
     def _to_coarse(self, fine: np.ndarray) -> np.ndarray:
         """Pre-blur on the fine grid (binned or supersampled fits), then block-average."""
-        if self.pre_blur_px > 0 and self.grid.fine_factor > 1:
+        f = self.grid.fine_factor
+        if self.pre_blur_px > 0 and f > 1:
             from scipy import ndimage
 
-            sigma_fine = self.pre_blur_px * self.grid.fine_factor
-            fine = ndimage.gaussian_filter(fine, sigma_fine, mode="reflect", truncate=3.5)
-        return block_mean(fine, self.grid.fine_factor)
+            # The Gaussian is separable, and blur and block averaging along different axes
+            # commute: blur along each row, average column blocks, then blur and average
+            # along the columns of the f× narrower image — the same linear operator as the
+            # full 2-D blur followed by block averaging (equal to rounding), in half the time
+            # (the strided column pass runs on 1/f of the pixels).
+            sigma_fine = self.pre_blur_px * f
+            h, w = fine.shape
+            along_rows = ndimage.gaussian_filter1d(fine, sigma_fine, axis=1, mode="reflect", truncate=3.5)
+            narrow = np.einsum("ijk->ij", along_rows.reshape(h, w // f, f)) / f
+            both = ndimage.gaussian_filter1d(narrow, sigma_fine, axis=0, mode="reflect", truncate=3.5)
+            return both.reshape(h // f, f, w // f).mean(axis=1)
+        return block_mean(fine, f)
 
     def expected(self, base: dict[str, float], terms: list[tuple[PhysicsTerm, dict]] = ()) -> np.ndarray:
         """Expected recording in DN (float64, coarse shape).
@@ -385,7 +396,11 @@ class ChainModel:
                     term.apply(state, params)
                 spectrum = _padded_spectrum(state.signal, g)
                 self._spectrum_cache = (signal_key, spectrum)
-            state.transfer = _gauss_transfer(g, sigma_px)
+            # one transfer function per blur width: the Jacobian columns of the other PSF terms
+            # (registration shift, glare, ...) share it (terms replace it, never modify it)
+            if self._transfer_cache is None or self._transfer_cache[0] != sigma_px:
+                self._transfer_cache = (sigma_px, _gauss_transfer(g, sigma_px))
+            state.transfer = self._transfer_cache[1]
             for term, params in by_stage.get("psf", []):
                 term.apply(state, params)
             state.light = _inverse_spectrum(spectrum * state.transfer, g)
