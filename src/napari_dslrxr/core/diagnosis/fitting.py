@@ -108,11 +108,14 @@ class Problem:
         mu = self.model.expected(*layout.unpack(x))
         return self.whiten_field((self.y - mu) * self.wsqrt, sel)
 
-    def jacobian(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
-        """Jacobian of the whitened residual: analytic for offset and gain, else forward differences."""
+    def jacobian(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None,
+                 f0: np.ndarray | None = None) -> np.ndarray:
+        """Jacobian of the whitened residual: analytic for offset and gain, else forward differences.
+        ``f0``: the whitened residual at ``x``, if already computed."""
         base, terms = layout.unpack(x)
         mu = self.model.expected(base, terms)
-        f0 = self.whiten_field((self.y - mu) * self.wsqrt, sel)
+        if f0 is None:
+            f0 = self.whiten_field((self.y - mu) * self.wsqrt, sel)
         jac = np.empty((f0.size, x.size))
         for j, (owner, key) in enumerate(layout.names):
             if owner == "base" and key == "offset_dn":
@@ -129,14 +132,15 @@ class Problem:
     def fit(self, layout: Layout, x0: np.ndarray, sel: np.ndarray | None = None, max_nfev: int = 40):
         """Bounded least squares; returns ``(x, χ², Jacobian at x)``."""
         return levenberg_marquardt(lambda x: self.whitened(layout, x, sel),
-                                    lambda x: self.jacobian(layout, x, sel),
+                                    lambda x, r: self.jacobian(layout, x, sel, r),
                                     x0, layout.lower, layout.upper, max_nfev)
 
 
 def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: float = 1e-9):
     """Levenberg–Marquardt on the small normal equations, with an active set for the bounds.
 
-    The residual vectors are long (every pixel) and the parameters few (≤ ~30): ``JᵀJ`` is a
+    ``jac(x, r)`` gets the residual ``r = fun(x)`` already computed. The residual vectors are
+    long (every pixel) and the parameters few (≤ ~30): ``JᵀJ`` is a
     tiny matrix, so each step costs one Jacobian, not an SVD of it. Parameters at a bound whose
     gradient points outward are held for that step. Stops when χ² improves by less than
     ``max(1e-3, rel_tol·χ²)`` (far below what a BIC comparison resolves) or after ``max_nfev``
@@ -146,7 +150,7 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
     r = fun(x)
     chi2 = float(r @ r)
     nfev, lam = 1, 1e-3
-    j = jac(x)
+    j = jac(x, r)
     while nfev < max_nfev:
         a = j.T @ j
         g = j.T @ r
@@ -180,7 +184,7 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
         gain = chi2 - chi2_new
         x, r, chi2 = x_new, r_new, chi2_new
         lam = max(lam / 3.0, 1e-9)
-        j = jac(x)
+        j = jac(x, r)
         if gain < max(1e-3, rel_tol * chi2):
             break
     return x, chi2, j

@@ -272,7 +272,7 @@ def _remove_banding(setup: _Setup, problem: Problem, fit: _Fit, opts: DiagnosisO
     non-smooth part — per-line mean residual minus a Gaussian smoothing over 8 lines, so a
     smooth gradient (heel, vignetting) is kept — is tested (χ² over lines at ``α/9``) and,
     if significant, subtracted from the recording and reported as unexplained."""
-    from scipy import ndimage, stats
+    from scipy import ndimage, special
 
     signatures = []
     mu = setup.model.expected(*fit.layout.unpack(fit.x))
@@ -286,7 +286,7 @@ def _remove_banding(setup: _Setup, problem: Problem, fit: _Fit, opts: DiagnosisO
         high = line_z - ndimage.gaussian_filter1d(line_z, 8.0, mode="reflect")
         kept = 1.0 - 1.0 / (2.0 * np.sqrt(np.pi) * 8.0)  # variance a white sequence keeps
         stat = float(np.sum(high[use] ** 2) / kept)
-        if stats.chi2.sf(stat, int(use.sum())) >= 1e-3 / 9:
+        if special.chdtrc(int(use.sum()), stat) >= 1e-3 / 9:  # χ² survival function
             continue
         resid = np.where(problem.mask, y - mu, 0.0)
         line_dn = resid.sum(axis=axis) / np.maximum(counts, 1)

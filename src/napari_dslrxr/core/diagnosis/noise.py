@@ -151,16 +151,15 @@ class NoiseModel:
                 "effective_fraction": round(self.effective_fraction, 4)}
 
 
-def _shift_pairs(mask: np.ndarray, dy: int, dx: int):
-    """Slices (a, b) with b = a shifted by (dy, dx) (dy >= 0), and the joint mask."""
-    h, w = mask.shape
+def _lag_slices(shape: tuple[int, int], dy: int, dx: int):
+    """Slices (a, b) with b = a shifted by (dy, dx) (dy >= 0)."""
+    h, w = shape
     ra, rb = slice(0, h - dy), slice(dy, h)
     if dx >= 0:
         ca, cb = slice(0, w - dx), slice(dx, w)
     else:
         ca, cb = slice(-dx, w), slice(0, w + dx)
-    both = mask[ra, ca] & mask[rb, cb]
-    return (ra, ca), (rb, cb), both
+    return (ra, ca), (rb, cb)
 
 
 def _robust_half_ms(diff: np.ndarray) -> float:
@@ -173,19 +172,35 @@ def _robust_half_ms(diff: np.ndarray) -> float:
     return 0.5 * float(np.mean(kept**2))
 
 
-def variogram(field_: np.ndarray, mask: np.ndarray, lags, level: np.ndarray | None = None,
-              level_tolerance: np.ndarray | None = None, partner: np.ndarray | None = None) -> dict:
-    """``γ(d)`` for each lag ``(dy, dx)`` over pixel pairs inside ``mask`` (the second pixel
-    inside ``partner`` instead, if given; and, if ``level`` is given, whose levels differ by
-    less than ``level_tolerance``)."""
+def lag_differences(field_: np.ndarray, lags, level: np.ndarray | None = None,
+                    level_tolerance: np.ndarray | None = None) -> dict:
+    """Per lag ``(dy, dx)``: slices ``(a, b)``, the differences ``field[b] - field[a]`` and, if
+    ``level`` is given, the pairs whose levels differ by less than ``level_tolerance`` (else
+    None). Independent of the pixel selection: :func:`variogram` over many selections of one
+    field (bins of level) computes them once."""
     out = {}
     for dy, dx in lags:
-        a, b, both = _shift_pairs(mask, dy, dx)
-        if partner is not None:
-            both = mask[a] & partner[b]
-        if level is not None:
-            both = both & (np.abs(level[b] - level[a]) < level_tolerance[a])
-        out[(dy, dx)] = _robust_half_ms((field_[b] - field_[a])[both])
+        a, b = _lag_slices(field_.shape, dy, dx)
+        same_level = None if level is None else np.abs(level[b] - level[a]) < level_tolerance[a]
+        out[(dy, dx)] = (a, b, field_[b] - field_[a], same_level)
+    return out
+
+
+def variogram(field_: np.ndarray, mask: np.ndarray, lags, level: np.ndarray | None = None,
+              level_tolerance: np.ndarray | None = None, partner: np.ndarray | None = None,
+              differences: dict | None = None) -> dict:
+    """``γ(d)`` for each lag ``(dy, dx)`` over pixel pairs inside ``mask`` (the second pixel
+    inside ``partner`` instead, if given; and, if ``level`` is given, whose levels differ by
+    less than ``level_tolerance``). ``differences``: :func:`lag_differences` of the same field,
+    level and tolerance, if already computed."""
+    out = {}
+    for lag in lags:
+        a, b, diff, same_level = (differences[lag] if differences is not None
+                                  else lag_differences(field_, [lag], level, level_tolerance)[lag])
+        both = mask[a] & (mask[b] if partner is None else partner[b])
+        if same_level is not None:
+            both = both & same_level
+        out[lag] = _robust_half_ms(diff[both])
     return out
 
 
@@ -242,14 +257,15 @@ def _variance_law(residual: np.ndarray, level: np.ndarray, use: np.ndarray, offs
     which = np.full(signal.shape, -1)
     which[use] = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
     xs, vs, ws = [], [], []
+    differences = lag_differences(residual, lags, None if tolerance is None else level, tolerance)
     for b in range(len(edges) - 1):
         sel = which == b
         if sel.sum() < 60:
             continue
         # first pixel in the bin, second anywhere flat at the same level: a bin of a large
         # uniform region is a scattered subset of it, and pairs inside it alone are few
-        gam = [g for g in variogram(residual, sel, lags, None if tolerance is None else level,
-                                    tolerance, partner=use).values() if np.isfinite(g)]
+        gam = [g for g in variogram(residual, sel, lags, partner=use, differences=differences).values()
+               if np.isfinite(g)]
         if not gam:
             continue
         xs.append(float(signal[sel].mean()))

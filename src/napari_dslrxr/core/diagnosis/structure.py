@@ -30,7 +30,7 @@ N_TESTS = 9
 
 def _profile_test(values: np.ndarray, z: np.ndarray, edges: np.ndarray) -> tuple[float, float, float]:
     """(p-value, χ² statistic, centre of the largest bin) of ``Σ_b (Σz/√n)_b²`` over the bins."""
-    from scipy import stats
+    from scipy import special
 
     which = np.searchsorted(edges, values, side="right") - 1
     ok = (which >= 0) & (which < len(edges) - 1)
@@ -44,7 +44,7 @@ def _profile_test(values: np.ndarray, z: np.ndarray, edges: np.ndarray) -> tuple
         return 1.0, 0.0, float("nan")
     bin_z = sums[use] / np.sqrt(counts[use])
     stat = float(np.sum(bin_z**2))
-    return float(stats.chi2.sf(stat, int(use.sum()))), stat, float(centres[use][np.argmax(np.abs(bin_z))])
+    return float(special.chdtrc(int(use.sum()), stat)), stat, float(centres[use][np.argmax(np.abs(bin_z))])
 
 
 def flagged_regions(z: np.ndarray, mask: np.ndarray, tile: int, binning: int, alpha: float = 0.01,
@@ -52,7 +52,7 @@ def flagged_regions(z: np.ndarray, mask: np.ndarray, tile: int, binning: int, al
     """Bounding boxes (recording pixels, end exclusive) of connected tiles with excess residual:
     tile mean ``Σz/√n`` or (``variance_test``) excess ``(Σz²/scale - n)/√(2n)`` beyond the
     Bonferroni threshold."""
-    from scipy import ndimage, stats
+    from scipy import ndimage, special
 
     h, w = z.shape
     stats_list = []
@@ -67,7 +67,7 @@ def flagged_regions(z: np.ndarray, mask: np.ndarray, tile: int, binning: int, al
             stats_list.append((r0, c0, zz.sum() / np.sqrt(n), (np.sum(zz**2) / scale - n) / np.sqrt(2 * n)))
     if not stats_list:
         return []
-    threshold = stats.norm.isf(alpha / (2 * len(stats_list)))
+    threshold = -special.ndtri(alpha / (2 * len(stats_list)))  # normal isf
     grid = np.zeros((int(np.ceil(h / tile)), int(np.ceil(w / tile))), dtype=bool)
     for r0, c0, mean_stat, chi_stat in stats_list:
         if abs(mean_stat) > threshold or (variance_test and chi_stat > threshold):
@@ -105,7 +105,7 @@ def _periodogram_test(z: np.ndarray, mask: np.ndarray, min_cycles: float = 3.0):
 
 
 def _autocorrelation_test(z: np.ndarray, mask: np.ndarray, min_lag: int = 3, max_lag: int = 32):
-    from scipy import stats
+    from scipy import special
 
     zz = np.where(mask, z, 0.0)
     h, w = zz.shape
@@ -125,7 +125,7 @@ def _autocorrelation_test(z: np.ndarray, mask: np.ndarray, min_lag: int = 3, max
     count = int(use.sum())
     k = np.argmax(np.where(use, np.abs(stat), 0.0))
     peak = float(np.abs(stat).ravel()[k])
-    p = min(1.0, count * 2.0 * stats.norm.sf(peak))
+    p = min(1.0, count * 2.0 * special.ndtr(-peak))  # normal sf
     return p, peak, (int(ly.ravel()[k]), int(lx.ravel()[k]))
 
 
@@ -144,13 +144,13 @@ def structure_tests(z: np.ndarray, mask: np.ndarray, chi2: float, n_effective: f
     level = alpha / N_TESTS
     tests: dict[str, dict] = {}
 
-    from scipy import stats
+    from scipy import special
 
     # The noise level was itself estimated (from ``noise_samples`` flat pixels or repeats): its
     # relative error sqrt(2 / noise_samples) adds to that of χ²/dof.
     se = np.sqrt(2.0 / n_effective + (2.0 / noise_samples if noise_samples else 0.0))
     global_stat = (chi2 / n_effective - 1.0) / se
-    tests["global"] = {"p": float(stats.norm.sf(global_stat)), "stat": float(global_stat),
+    tests["global"] = {"p": float(special.ndtr(-global_stat)), "stat": float(global_stat),
                        "signature": "excess residual variance"}
     for name, values, edges, signature in (
             ("rows", rows[mask].astype(float), np.arange(h + 1) - 0.5, "row banding"),

@@ -36,7 +36,7 @@ def _apply_affine(state: ChainState, p: dict) -> None:
     if scale == 0.0 and rot == 0.0:
         return
     g = state.grid
-    gy, gx = np.gradient(state.light)
+    gy, gx = state.light_gradient()
     xs = g.x * g.half_size_px  # pixels from the image centre
     ys = g.y * g.half_size_px
     dx = scale * xs - rot * ys

@@ -151,7 +151,8 @@ class ChainState:
 
     ``path`` is the fine-grid line integral ``mu * t`` (dimensionless); ``fluence`` the relative
     incident fluence (1 = open field at the centre); ``signal`` the screen input (relative to the
-    open field); ``scatter_source`` ``block_mean(T * p)`` for the scatter kernel; ``transfer`` the
+    open field); ``scatter_source`` ``block_mean(T * p)`` for the scatter kernel (or a function
+    returning it: read it with :meth:`scatter_source_image`); ``transfer`` the
     rfft2 transfer function on the padded grid; ``light`` the optical image after the PSF
     (relative units). All coarse arrays are float64.
     """
@@ -159,11 +160,27 @@ class ChainState:
     grid: ChainGrid
     path: np.ndarray | None = None
     transmission: np.ndarray | None = None
-    scatter_source: np.ndarray | None = None
+    scatter_source: np.ndarray | Callable[[], np.ndarray] | None = None
     fluence: np.ndarray | None = None
     signal: np.ndarray | None = None
     transfer: np.ndarray | None = None
     light: np.ndarray | None = None
+    def scatter_source_image(self) -> np.ndarray:
+        """``scatter_source``, evaluated if it was given as a function (computed on demand)."""
+        if callable(self.scatter_source):
+            self.scatter_source = self.scatter_source()
+        return self.scatter_source
+
+    #: ``(light, gradient)`` from the model's light cache: ``gradient()`` is ``np.gradient`` of
+    #: that light, computed once per cached light (Jacobian columns of the optics and camera
+    #: stages share it)
+    cached_light_gradient: tuple | None = None
+
+    def light_gradient(self) -> tuple[np.ndarray, np.ndarray]:
+        """``np.gradient(light)`` (rows, columns), from the cache while ``light`` is unchanged."""
+        if self.cached_light_gradient is not None and self.cached_light_gradient[0] is self.light:
+            return self.cached_light_gradient[1]()
+        return tuple(np.gradient(self.light))
 
 
 @dataclass(frozen=True)
@@ -295,7 +312,7 @@ def _apply_scatter(state: ChainState, p: dict) -> None:
     g = state.grid
     # Object scatter ∝ primary · (-ln T) spread by a wide kernel, a scatter-kernel superposition
     # (docs/algorithms/simulation.md, section 'Object scatter').
-    source = state.fluence * state.scatter_source
+    source = state.fluence * state.scatter_source_image()
     state.signal = state.signal + p["amplitude"] * _fft_filter(
         source, _gauss_transfer(g, _px(g, p["sigma_mm"])), g)
 
