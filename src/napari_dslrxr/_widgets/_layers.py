@@ -91,7 +91,7 @@ def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: s
     """
     if name in viewer.layers:
         layer = viewer.layers[name]
-        if layer._type_string == layer_type and np.ndim(layer.data) == np.ndim(data) and (
+        if type(layer).__name__.lower() == layer_type and np.ndim(layer.data) == np.ndim(data) and (
             getattr(layer, "rgb", False) == bool(kwargs.get("rgb", False))
         ):
             layer.data = data
