@@ -100,7 +100,7 @@ def register(app: typer.Typer) -> None:
         t_measure = time.perf_counter() - t0 - t_read
         paths = write_qc_outputs(result, output, inputs=inputs, input_names=[str(p) for p in inputs],
                                  timings_s={"read": t_read, "measure": t_measure})
-        i = int(abs(result.frequency_cy_per_mm - 0.5 * result.nyquist_cy_per_mm).argmin())
+        i = result.index_at(0.5)
         for w in result.warnings:
             typer.echo(f"dslrxr: warning: {w}", err=True)
         typer.echo(f"wrote {paths['json']}, {paths['csv'].name}, {paths['html'].name}: at "

@@ -41,7 +41,7 @@ def quality_summary(result: DetectorQuality) -> str:
     lines = [f"q = {result.q_photons_per_mm2:.5g} photons/mm² ({result.beam}, {result.air_kerma_ugy:g} µGy); "
              f"Nyquist {result.nyquist_cy_per_mm:.3g} cycles/mm; direction {result.direction}"]
     for fraction in READOUT_FRACTIONS:
-        i = int(np.abs(f - fraction * result.nyquist_cy_per_mm).argmin())
+        i = result.index_at(fraction)
         lines.append(f"{f[i]:.3g} c/mm: MTF {result.mtf[i]:.3f} ± {result.mtf_uncertainty[i]:.3f}, "
                      f"NNPS {result.nnps_mm2[i]:.3g} ± {result.nnps_uncertainty_mm2[i]:.2g} mm², "
                      f"DQE {result.dqe[i]:.3f} ± {result.dqe_uncertainty[i]:.3f}")

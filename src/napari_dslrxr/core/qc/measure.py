@@ -121,6 +121,11 @@ class DetectorQuality:
     def nyquist_cy_per_mm(self) -> float:
         return 0.5 / self.pixel_pitch_mm
 
+    def index_at(self, nyquist_fraction: float) -> int:
+        """Index of the frequency sample nearest ``nyquist_fraction`` × Nyquist."""
+        target = nyquist_fraction * self.nyquist_cy_per_mm
+        return int(np.abs(self.frequency_cy_per_mm - target).argmin())
+
     def to_json(self) -> dict:
         """The numbers of ``qc.json``: plain lists and floats (non-finite values become None)."""
         from ..io.provenance import to_jsonable

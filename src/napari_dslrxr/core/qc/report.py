@@ -157,9 +157,8 @@ def _csv_text(result: DetectorQuality) -> str:
 
 def _table_rows(result: DetectorQuality) -> str:
     rows = []
-    nyq = result.nyquist_cy_per_mm
     for frac in (0.25, 0.5, 0.75, 1.0):
-        i = int(np.argmin(np.abs(result.frequency_cy_per_mm - frac * nyq)))
+        i = result.index_at(frac)
         f = result.frequency_cy_per_mm[i]
         rows.append(f"<tr><td>{f:.3g}</td><td>{frac:g}</td><td>{result.mtf[i]:.3f} ± {result.mtf_uncertainty[i]:.3f}</td>"
                     f"<td>{result.nnps_mm2[i]:.3e} ± {result.nnps_uncertainty_mm2[i]:.1e}</td>"
