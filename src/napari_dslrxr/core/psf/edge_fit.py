@@ -71,7 +71,7 @@ import numpy as np
 from ..errors import ParameterError
 from .edge_config import EdgeConfig, load_edge_config
 from .edge_fit_plan import _check_fit_arguments, _FitPlan, _plan_fit, _starting_point
-from .edge_fit_result import _fitted_model, _inverse_fisher
+from .edge_fit_result import _fitted_model, _log_sigma, _residual_covariance
 from .edge_images import EdgeImage, _Prepared, _prepare, normalise_edge_image
 from .edge_model import DEFAULT_ESF_STEP_PX, _dot
 from .edge_objective import _JointProblem
@@ -262,16 +262,11 @@ def _unidentified_source(problem: _JointProblem, prepared: list[_Prepared], thet
     too small a magnification for the pixel size) leave the spot's width free along a valley
     of the cost: the fit then returns some width with an uncertainty as large as itself.
     """
-    residuals, jtj, terms = problem.residuals_and_jacobian_normal(theta)
-    all_res = np.concatenate(residuals)
-    weights = np.concatenate([t["pixel_weight"] for t in terms])
-    sigma2 = _dot(weights * all_res, all_res) / max(all_res.size - theta.size - 2 * len(prepared), 1)
-    cov = _inverse_fisher(jtj) * sigma2
+    cov = _residual_covariance(problem, prepared, theta)[3]
     worst = 0.0
     for name in ("sx", "sy"):
         if name in problem.global_free:
-            k = problem.global_free.index(name)
-            relative = math.sqrt(cov[k, k]) if np.isfinite(cov[k, k]) and cov[k, k] >= 0 else float("inf")
+            relative = _log_sigma(cov, problem.global_free.index(name))
             worst = max(worst, relative)    # sigma of log FWHM = relative sigma of the FWHM
     if worst < SOURCE_MAX_RELATIVE_UNCERTAINTY:
         return None

@@ -67,17 +67,32 @@ def _profiles(t: dict, values: np.ndarray, bin_px: float = 0.25, half_range_px: 
             "lsf_measured": rounded(lsf_meas), "lsf_fitted": rounded(lsf_fit)}
 
 
+def _residual_covariance(problem: _JointProblem, prepared: list[_Prepared], theta: np.ndarray):
+    """Residuals, per-edge terms, all residuals joined, and ``cov = sigma^2 (J^T W J)^-1`` at ``theta``.
+
+    ``sigma^2`` is the weighted residual variance per unit weight; each edge's two levels count
+    as fitted parameters.
+    """
+    residuals, jtj, terms = problem.residuals_and_jacobian_normal(theta)
+    all_res = np.concatenate(residuals)
+    all_weights = np.concatenate([t["pixel_weight"] for t in terms])
+    n_par = theta.size + 2 * len(prepared)
+    sigma2 = _dot(all_weights * all_res, all_res) / max(all_res.size - n_par, 1)
+    return residuals, terms, all_res, _inverse_fisher(jtj) * sigma2
+
+
+def _log_sigma(cov: np.ndarray, k: int) -> float:
+    """1-sigma of free parameter ``k`` (of its log for a FWHM); inf when not determined."""
+    return math.sqrt(cov[k, k]) if np.isfinite(cov[k, k]) and cov[k, k] >= 0 else float("inf")
+
+
 def _fitted_model(problem: _JointProblem, prepared: list[_Prepared], run: _OptimiserRun, plan: _FitPlan,
                   pitch: float, shape_power: float, source_note: str | None = None) -> PSFModel:
     """The PSF model at the optimum, with its uncertainties and the fit report."""
     theta = run.theta
-    residuals, jtj, terms = problem.residuals_and_jacobian_normal(theta)
-    all_res = np.concatenate(residuals)
-    all_weights = np.concatenate([t["pixel_weight"] for t in terms])
-    n_obs, n_par = all_res.size, theta.size + 2 * len(prepared)
+    residuals, terms, all_res, cov = _residual_covariance(problem, prepared, theta)
+    n_obs = all_res.size
     rss = _dot(all_res, all_res)
-    sigma2 = _dot(all_weights * all_res, all_res) / max(n_obs - n_par, 1)   # per unit weight
-    cov = _inverse_fisher(jtj) * sigma2
     fwhm, local = problem.unpack(theta)
     uncertainty = _uncertainties(problem, fwhm, cov, pitch, plan.tie)
     edge_reports = [_edge_report(p, r, t, local[j]) for j, (p, r, t) in enumerate(zip(prepared, residuals, terms))]
@@ -118,8 +133,7 @@ def _uncertainties(problem: _JointProblem, fwhm: dict, cov: np.ndarray, pitch: f
     def sd(name):
         if name not in problem.global_free:
             return None
-        k = problem.global_free.index(name)
-        return math.sqrt(cov[k, k]) if np.isfinite(cov[k, k]) and cov[k, k] >= 0 else float("inf")
+        return _log_sigma(cov, problem.global_free.index(name))
 
     uncertainty = {}
     core_key = "detector_core_mtf_scale_mm" if problem.generalised else "detector_fwhm_core_mm"
