@@ -30,11 +30,6 @@ class _Component:
     step: int
     median: np.ndarray
 
-    def to_flat(self, flat_in_component: np.ndarray, width: int) -> np.ndarray:
-        """Flat indices in the full image of flat indices in this component."""
-        rows, cols = np.divmod(flat_in_component, self.median.shape[1])
-        return (self.r0 + self.step * rows) * width + (self.c0 + self.step * cols)
-
 
 def _detection_components(x: np.ndarray, size_px: int):
     """The components the fast detection median works on: (component, its values) pairs.
