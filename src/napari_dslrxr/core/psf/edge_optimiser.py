@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize
 
+from ..progress import Steps
 from ..robust import robust_sigma
 from .edge_images import _Prepared
 from .edge_objective import _JointProblem
@@ -45,12 +46,10 @@ def _optimise(problem: _JointProblem, prepared: list[_Prepared], theta: np.ndarr
     """A first unweighted fit, then (when asked and when it changes anything) a refit with the
     fitted noise model and the outliers masked."""
     total_iterations, evaluations, n_rejected = 0, 0, 0
-    counter = {"it": 0}
+    steps = Steps(progress, max_iterations)
 
     def callback(_xk):
-        counter["it"] += 1
-        if progress is not None:
-            progress(min(counter["it"], max_iterations), max_iterations)
+        steps.advance()
 
     passes = 2 if (outlier_sigma or weight_by_noise) else 1
     for pass_index in range(passes):
