@@ -204,13 +204,10 @@ def _psf_kernel(psf_path: str | os.PathLike, source_to_object_mm: float | None,
 
 
 def _reference_frames(flat_paths: Sequence[str | os.PathLike], dark_paths: Sequence[str | os.PathLike],
-                      shape: tuple[int, ...] | None = None, shape_of: str | None = None):
+                      shape: tuple[int, ...], shape_of: str):
     """Read the flats and darks, which must all have ``shape`` (``shape_of`` says whose, for
-    the message); without ``shape``, the first frame's. Returns ``(flats, darks, shape)``."""
+    the message). Returns ``(flats, darks, shape)``."""
     flats, darks = load_frames(flat_paths), load_frames(dark_paths)
-    if shape is None:
-        shape = (flats or darks)[0].shape
-        shape_of = f"the other reference frames' {shape}"
     for name, frame_paths, frames in (("flat", flat_paths, flats), ("dark", dark_paths, darks)):
         for p, f in zip(frame_paths, frames, strict=True):
             if f.shape != shape:
