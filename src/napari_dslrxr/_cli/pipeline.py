@@ -62,6 +62,7 @@ def _plan_jobs(files: list[Path], out: Path, params, request: dict, *, overwrite
 
     todo, skipped, redo = [], 0, {}
     checksums: dict = {}  # reference files are hashed once for the whole batch
+    params_dict = params_to_dict(params)  # the same for every job
     for f in files:
         if not overwrite:
             check = check_finished(f, out, params, checksums=checksums, **request)
@@ -70,7 +71,7 @@ def _plan_jobs(files: list[Path], out: Path, params, request: dict, *, overwrite
                 continue
             if not check.new:
                 redo.setdefault(check.reason, []).append(f.name)
-        todo.append({"input": str(f), "out_dir": str(out), "params": params_to_dict(params),
+        todo.append({"input": str(f), "out_dir": str(out), "params": params_dict,
                      "flats": [str(p) for p in request["flat_paths"]], "darks": [str(p) for p in request["dark_paths"]],
                      "psf": str(request["psf_path"]) if request["psf_path"] else None,
                      "sod": request["source_to_object_mm"], "sdd": request["source_to_detector_mm"],
