@@ -164,7 +164,7 @@ def _failed_task_message(exc: BaseException) -> str:
 
 
 def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
-                   report: Callable[[int, tuple[str, bool, str, float]], None]) -> None:
+                   report: Callable[[int, tuple[str, bool, str, float, list[str]]], None]) -> None:
     """Run each job of ``todo`` as one task; call ``report(i, outcome)`` as files finish.
 
     Raises
