@@ -114,13 +114,16 @@ def value_of_interest(linear: np.ndarray, field_mask: np.ndarray | None, region:
         # object's outline where it is. The value of interest is then taken unfiltered.
         smooth = cv2.medianBlur(np.ascontiguousarray(linear, np.float32), 5)
         positive = field & (smooth > 0)
-        # attenuation (high = more attenuating) of the field: the direct-exposure mode is its low end
-        level = direct_exposure_level(-np.log(smooth[positive])) if positive.sum() >= 16 else None
+        # attenuation (high = more attenuating), NaN where there is no signal: the direct-exposure
+        # mode is the low end of the field's attenuation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            attenuation = -np.log(np.where(smooth > 0, smooth, np.nan))
+        level = direct_exposure_level(attenuation[positive]) if positive.sum() >= 16 else None
         if level is None:
             note = "no direct-exposure background found: the whole field is the anatomy"
         else:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                direct = -np.log(np.where(smooth > 0, smooth, np.nan)) < level  # NaN compares False: kept
+            with np.errstate(invalid="ignore"):
+                direct = attenuation < level  # NaN compares False: kept
             chosen = field & ~direct
     elif region == "centre":
         chosen = _centre_of(field)
