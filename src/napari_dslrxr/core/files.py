@@ -129,31 +129,37 @@ def write_outputs(result: PipelineResult, paths: dict[str, Path], *, inputs: Seq
     description = json.dumps({"software": "napari-dslrxr", "version": __version__, "stage": "run",
                               "polarity": params.output.polarity}, sort_keys=True)
     spacing = pixel_spacing_mm or (params.output.pixel_spacing_mm or None)
+    parameters = params_to_dict(params, run_sections=False)  # the same in every sidecar
+    # the TIFF and the DICOM hold the same 16-bit image: converted once when both are written
+    shared_uint16 = result.display_uint16() if {"tiff", "dicom"} <= paths.keys() else None
     for kind, path in paths.items():
         if kind == "tiff":
-            content = result.display_uint16()
+            content = shared_uint16 if shared_uint16 is not None else result.display_uint16()
         elif kind == "png":
             content = partial(write_png, data=preview_uint8(result.display, params.output.preview_max_side_px),
                               inputs=inputs)
         elif kind == "dicom":
-            content = partial(_write_dicom, result=result, params=params, spacing=spacing, uid_seed=uid_seed,
-                              patient=patient, inputs=inputs)
+            image = shared_uint16 if shared_uint16 is not None else result.display_uint16()
+            content = partial(_write_dicom, image=image, result=result, params=params, spacing=spacing,
+                              uid_seed=uid_seed, patient=patient, inputs=inputs)
         else:  # pragma: no cover
             raise OutputError(f"{path}: unknown output kind {kind!r}")
-        write_output(path, content, stage="run", parameters=params_to_dict(params, run_sections=False),
+        write_output(path, content, stage="run", parameters=parameters,
                      inputs=inputs, timings_s=result.timings_s, results=sidecar_results, description=description,
                      resolution_px_per_mm=(1.0 / spacing) if spacing else None)
         written.append(path)
     return written
 
 
-def _write_dicom(path: Path, result: PipelineResult, params: PipelineParams, *, spacing: float | None,
-                 uid_seed: str | None, patient: dict | None, inputs: Sequence[str | os.PathLike]) -> None:
-    """The DICOM DX output of a run; its UIDs derive from ``uid_seed`` (default: the inputs and parameters)."""
+def _write_dicom(path: Path, image: np.ndarray, result: PipelineResult, params: PipelineParams, *,
+                 spacing: float | None, uid_seed: str | None, patient: dict | None,
+                 inputs: Sequence[str | os.PathLike]) -> None:
+    """The DICOM DX output of a run (``image``: its uint16 display image); its UIDs derive from
+    ``uid_seed`` (default: the inputs and parameters)."""
     from .io.dicom import write_dicom_dx
     from .stages.exposure_index import dicom_exposure_tags
 
-    write_dicom_dx(path, result.display_uint16(), pixel_spacing_mm=spacing,
+    write_dicom_dx(path, image, pixel_spacing_mm=spacing,
                    uid_seed=uid_seed or run_identity(inputs, params), patient=patient,
                    series_description="napari-dslrxr processed radiograph", inputs=inputs,
                    attributes=dicom_exposure_tags(result.results.get("exposure_index")))
