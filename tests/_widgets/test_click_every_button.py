@@ -486,6 +486,16 @@ def test_contrast_buttons(plugin, monkeypatch):
     monkeypatch.undo()
     plugin.click(name, "Apply at full resolution")
     assert viewer.layers["DSLR radiograph contrast"].data.shape == samples.PHANTOM_SHAPE
+    # the layer holds the display stages' output for the panel's parameters at full resolution,
+    # not the shape-matching scaled input or a default-parameter render
+    from napari_dslrxr.core.display import apply_display_stages
+
+    params = widget.pipeline_params()
+    prepared = contrast_module.prepare_input(np.asarray(viewer.layers["DSLR radiograph"].data), widget._kind.value,
+                                             widget.preview_max_pixels, params)
+    expected = apply_display_stages(prepared.image, prepared.mask, params)
+    np.testing.assert_allclose(viewer.layers["DSLR radiograph contrast"].data, expected, atol=1e-6)
+    assert np.std(expected) > 0.05  # a picture, not a constant
     plugin.toggle_live_preview(name, "DSLR radiograph contrast (preview)")
     plugin.check_all_clicked(name)
 
