@@ -325,6 +325,16 @@ def test_impulse_removal_buttons(plugin, monkeypatch, shots):
     plugin.click(name, "Remove impulses")
     assert "DSLR radiograph cleaned" in plugin.viewer.layers
     assert "px replaced" in widget._readout.value and "done in" in widget._job.status.value
+    # the layers hold the core stage's result for the panel's parameters, and it replaced pixels
+    from napari_dslrxr.core.stages.impulse import remove_impulses
+
+    source = np.asarray(plugin.viewer.layers["DSLR radiograph"].data)
+    expected = remove_impulses(source, widget.get_params(), space=widget._space.value)
+    cleaned = np.asarray(plugin.viewer.layers["DSLR radiograph cleaned"].data)
+    np.testing.assert_array_equal(cleaned, expected.image)
+    assert np.count_nonzero(np.any(cleaned != source, axis=-1) if cleaned.ndim == 3 else cleaned != source) > 0
+    for channel, mask in expected.masks.items():
+        np.testing.assert_array_equal(plugin.viewer.layers[f"DSLR radiograph pulses {channel}"].data > 0, mask)
     plugin.check_all_clicked(name)
     plugin.snap(shots, "impulse", name, ["DSLR radiograph cleaned", "DSLR radiograph pulses H",
                                          "DSLR radiograph pulses S", "DSLR radiograph pulses V"],
