@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import enum
+import hashlib
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,3 +104,49 @@ def test_missing_input_or_output_is_a_one_line_error(tmp_path):
     with pytest.raises(OutputError, match="cannot checksum the output"):
         provenance.write_sidecar(tmp_path / "never.tif", stage="x", parameters={})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.tif"]
+
+
+def _age(path: Path, seconds: float) -> None:
+    old = path.stat().st_mtime - seconds
+    os.utime(path, (old, old))
+
+
+def test_a_settled_input_is_hashed_once_per_process(tmp_path, monkeypatch):
+    from napari_dslrxr.core.io import writers
+
+    path = tmp_path / "flat.bin"
+    path.write_bytes(b"a" * 5000)
+    _age(path, 60)
+    # ctime cannot be set back: wait until the change time is settled too
+    monkeypatch.setattr(writers, "_SETTLED_NS", 0)
+    first = writers.file_sha256(path)
+    opened = []
+    real_open = open
+    monkeypatch.setattr(writers, "open", lambda *a, **k: opened.append(a) or real_open(*a, **k), raising=False)
+    assert writers.file_sha256(path) == first == hashlib.sha256(b"a" * 5000).hexdigest()
+    assert opened == []
+
+
+def test_a_changed_input_is_hashed_again_even_with_its_size_and_mtime_restored(tmp_path, monkeypatch):
+    from napari_dslrxr.core.io import writers
+
+    monkeypatch.setattr(writers, "_SETTLED_NS", 0)
+    path = tmp_path / "dark.bin"
+    path.write_bytes(b"a" * 5000)
+    _age(path, 60)
+    mtime = path.stat().st_mtime_ns
+    assert writers.file_sha256(path) == hashlib.sha256(b"a" * 5000).hexdigest()
+    with open(path, "r+b") as fh:  # same size, same inode
+        fh.write(b"b")
+    os.utime(path, ns=(mtime, mtime))
+    assert writers.file_sha256(path) == hashlib.sha256(b"b" + b"a" * 4999).hexdigest()
+
+
+def test_a_file_rewritten_within_the_time_stamp_step_is_never_stale(tmp_path):
+    from napari_dslrxr.core.io import writers
+
+    path = tmp_path / "input.bin"
+    for content in (b"x" * 100, b"y" * 100, b"z" * 100):  # same size, same coarse time stamp
+        with open(path, "r+b" if path.exists() else "wb") as fh:
+            fh.write(content)
+        assert writers.file_sha256(path) == hashlib.sha256(content).hexdigest()

@@ -11,6 +11,8 @@ import contextlib
 import hashlib
 import os
 import secrets
+import time
+from collections import OrderedDict
 from collections.abc import Iterable
 from glob import escape as glob_escape
 from pathlib import Path
@@ -21,13 +23,44 @@ from ..errors import OutputError
 from .images import short_message
 
 
+# Digests of files already read in this process, keyed by what changes when a file does
+# (device, inode, size, modification and change times in ns). A batch names the same flat, dark
+# and PSF files in every output's sidecar and the rerun key hashes each input once more: without
+# this, a 24 MP input was read and hashed up to five times per output.
+_DIGESTS: OrderedDict[tuple, str] = OrderedDict()
+_DIGESTS_KEPT = 4096
+_SETTLED_NS = 2_000_000_000
+
+
+def _file_state(path: str | os.PathLike) -> tuple:
+    st = os.stat(path)
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
 def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    """SHA-256 hex digest of a file, read in chunks."""
+    """SHA-256 hex digest of a file, read in chunks.
+
+    A file whose size and time stamps are unchanged since this process last hashed it is not
+    read again. A file that changes while it is being hashed is not remembered.
+    """
+    before = _file_state(path)
+    known = _DIGESTS.get(before)
+    if known is not None:
+        _DIGESTS.move_to_end(before)
+        return known
     digest = hashlib.sha256()
     with open(path, "rb") as fh:
         while block := fh.read(chunk):
             digest.update(block)
-    return digest.hexdigest()
+    value = digest.hexdigest()
+    # File time stamps tick in coarse steps (a few ms): a file changed within the same step
+    # keeps them. Like git's "racy clean" rule, only a file settled for a while is remembered.
+    settled = time.time_ns() - max(before[3], before[4]) > _SETTLED_NS
+    if settled and _file_state(path) == before:
+        _DIGESTS[before] = value
+        if len(_DIGESTS) > _DIGESTS_KEPT:
+            _DIGESTS.popitem(last=False)
+    return value
 
 
 def _same_file(a: Path, b: Path) -> bool:
