@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import InputError, ParameterError
 from .conversion import ConversionFunction, conversion_function
-from .edge import EdgeMTF, fill_masked, slanted_edge_mtf, spot_mask
+from .edge import fill_masked, slanted_edge_mtf, spot_mask
 from .nnps import NNPSResult, mean_dark, nnps_from_flats
 from .params import SNR2_IN_PER_UGY, QcParams
 
