@@ -87,11 +87,17 @@ def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: s
                **kwargs: Any) -> napari.layers.Layer:
     """Update the layer called ``name`` in place (same type and ndim), or add it.
 
-    Re-running a stage therefore replaces its result layer instead of piling up copies.
+    Re-running a stage therefore replaces its result layer instead of piling up copies, and
+    keeps the GUI responsive: napari removes a layer with a full garbage collection (hundreds
+    of milliseconds with a few images open) and builds a new one's controls and visual.
     """
+    import napari.layers
+
     if name in viewer.layers:
         layer = viewer.layers[name]
-        if type(layer).__name__.lower() == layer_type and np.ndim(layer.data) == np.ndim(data) and (
+        # isinstance, not the class name: a plugin's viewer hands out proxies of its layers.
+        layer_class = getattr(napari.layers, layer_type.capitalize())
+        if isinstance(layer, layer_class) and np.ndim(layer.data) == np.ndim(data) and (
             getattr(layer, "rgb", False) == bool(kwargs.get("rgb", False))
         ):
             layer.data = data
