@@ -52,6 +52,14 @@ def test_hidden_glare_is_named_with_residual_layers_and_report(docked, wait_for_
     assert np.mean(binned_before**2) > 1.25 and np.mean(binned_after**2) < 1.2
     if result.regions:
         assert len(viewer.layers["mismatch regions"].data) == len(result.regions)
+    # Shown again (a re-run): every layer updated in place, none removed and re-added.
+    shown = list(viewer.layers)
+    widget._show(recording, result)
+    assert all(a is b for a, b in zip(viewer.layers, shown, strict=True))
+    assert list(viewer.layers["residual map labels"].features["what"]) == [
+        "before (scene as given)", "after (+ veiling glare)"]
+    if result.regions:
+        assert len(viewer.layers["mismatch regions"].data) == len(result.regions)
 
     opened = []
     monkeypatch.setattr("webbrowser.open", lambda url: opened.append(url) or True)

@@ -28,7 +28,7 @@ from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker
-from ._layers import remove_layer, reset_choices, show_layer, single_channel_layers
+from ._layers import remove_layer, reset_choices, same_geometry, show_layer, single_channel_layers
 
 if TYPE_CHECKING:
     import napari
@@ -196,24 +196,46 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
                        contrast_limits=BINNED_Z_LIMITS, scale=binned_scale,
                        translate=tuple(np.asarray(binned_translate) + shift), visible=True)
         top_left = np.asarray(layer.translate[-2:], float) - scale * 0.5
-        labels = np.array([top_left, top_left + beside])
-        remove_layer(self._viewer, MAP_LABELS)
         added = ", ".join(term.effect.replace("_", " ") for term in result.added) or "nothing found"
-        self._viewer.add_points(labels, name=MAP_LABELS, size=0, features={"what": [
-            "before (scene as given)", f"after (+ {added})"]},
-            text={"string": "{what}", "color": "yellow", "size": 10, "anchor": "lower_left",
-                  "translation": [-0.1 * width, 0.0]})
+        self._show_map_labels(np.array([top_left, top_left + beside]), width,
+                              ["before (scene as given)", f"after (+ {added})"])
         rectangles = [np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float) - 0.5
                       for r0, c0, r1, c1 in result.regions]
-        name = "mismatch regions"
-        if name in self._viewer.layers:
-            self._viewer.layers.remove(name)
-        if rectangles:
-            self._viewer.add_shapes(rectangles, shape_type="rectangle", name=name, edge_color="yellow",
-                                    face_color="transparent", edge_width=2, scale=tuple(scale),
-                                    translate=tuple(layer.translate[-2:]))
+        self._show_regions(rectangles, layer)
         self._readout.value = summary_text(result)
         self._write.enabled = True
+
+    # The labels and regions layers are updated in place when they exist: napari removes a
+    # layer with a full garbage collection on the GUI thread.
+    def _show_map_labels(self, positions: np.ndarray, width: float, texts: list[str]) -> None:
+        from napari.layers import Points
+
+        translation = [-0.1 * width, 0.0]
+        existing = self._viewer.layers[MAP_LABELS] if MAP_LABELS in self._viewer.layers else None
+        if isinstance(existing, Points):
+            existing.data = positions
+            existing.features = {"what": texts}
+            existing.text.translation = np.asarray(translation)
+            return
+        remove_layer(self._viewer, MAP_LABELS)
+        self._viewer.add_points(positions, name=MAP_LABELS, size=0, features={"what": texts},
+                                text={"string": "{what}", "color": "yellow", "size": 10, "anchor": "lower_left",
+                                      "translation": translation})
+
+    def _show_regions(self, rectangles: list[np.ndarray], layer) -> None:
+        from napari.layers import Shapes
+
+        name, geometry = "mismatch regions", same_geometry(layer)
+        existing = self._viewer.layers[name] if name in self._viewer.layers else None
+        if not isinstance(existing, Shapes):
+            remove_layer(self._viewer, name)
+            if not rectangles:
+                return
+            existing = self._viewer.add_shapes(name=name, **geometry)
+        existing.data = []
+        if rectangles:
+            existing.add_rectangles(rectangles, edge_color="yellow", face_color="transparent", edge_width=2)
+        existing.scale, existing.translate = geometry["scale"], geometry["translate"]
 
     @guarded("diagnosis report")
     def write(self):
