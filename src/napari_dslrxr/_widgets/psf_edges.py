@@ -33,6 +33,8 @@ if TYPE_CHECKING:
 
 SOD_KEY, SDD_KEY = "source_to_object_mm", "source_to_detector_mm"
 SHAPES = {"exponential (p = 1, SABER)": 1.0, "Gaussian (p = 2)": 2.0}
+#: Half-width cap of the "PSF kernel" layer (the kernel the Deconvolution widget can take).
+KERNEL_RADIUS_PX = 64
 
 
 def roi_layer_name(image_name: str) -> str:
@@ -89,6 +91,16 @@ def fit_summary(model: PSFModel) -> str:
                  f"(noise {report.get('noise_rms_estimate', float('nan')):.3g}), "
                  f"{report.get('n_images', 0)} ROIs")
     return "\n".join(lines)
+
+
+def fit_for_display(edges, pixel_pitch_mm: float, *, shape_power: float, progress,
+                    source_to_object_mm: float, source_to_detector_mm: float) -> tuple[PSFModel, np.ndarray, str]:
+    """The joint edge fit, and what the widget shows of it: the kernel at the chosen image's
+    geometry and the read-out. Runs in the worker: the kernel alone takes about half a
+    second, which on the GUI thread would freeze the viewer."""
+    model = fit_edges(edges, pixel_pitch_mm, shape_power=shape_power, progress=progress)
+    kernel = model.kernel(source_to_object_mm, source_to_detector_mm, max_radius_px=KERNEL_RADIUS_PX)
+    return model, kernel, fit_summary(model)
 
 
 def grey(data: np.ndarray) -> np.ndarray:
@@ -265,8 +277,11 @@ class PSFEdgeWidget(Container):
         pitch, power = float(self._pitch.value), SHAPES[self._shape.value]
         self._fit.enabled = False
         self._readout.value = f"fitting {len(edges)} edge ROI(s)..."
-        return run_in_worker(fit_edges, edges, pitch, shape_power=power, progress=self._job.callback,
-                             desc="PSF edge fit", on_returned=self._show, on_finished=self._done,
+        geometry_mm = (float(self._sod.value), float(self._sdd.value))
+        return run_in_worker(fit_for_display, edges, pitch, shape_power=power, progress=self._job.callback,
+                             source_to_object_mm=geometry_mm[0], source_to_detector_mm=geometry_mm[1],
+                             desc="PSF edge fit", on_returned=lambda out: self._show(*out, geometry_mm),
+                             on_finished=self._done,
                              panel=self._job, readout=self._readout)
 
     def cancel(self) -> None:
@@ -278,17 +293,22 @@ class PSFEdgeWidget(Container):
         if self._readout.value.endswith("..."):
             self._readout.value = self._job.status.value
 
-    def _show(self, model: PSFModel) -> None:
+    def _show(self, model: PSFModel, kernel: np.ndarray, summary: str, geometry_mm: tuple[float, float]) -> None:
         self.model = model
         self._save.enabled = True
-        self._readout.value = fit_summary(model)
+        self._readout.value = summary
         self.plot_profiles(model)
-        self.show_kernel(model)
+        self.show_kernel(model, kernel, geometry_mm)
 
-    def show_kernel(self, model: PSFModel) -> napari.layers.Image:
-        """The kernel at the chosen image's geometry, beside that image (``"PSF kernel"``)."""
+    def show_kernel(self, model: PSFModel, kernel: np.ndarray | None = None,
+                    geometry_mm: tuple[float, float] | None = None) -> napari.layers.Image:
+        """The kernel at the chosen image's geometry, beside that image (``"PSF kernel"``);
+        ``kernel``: that kernel when computed already (off the GUI thread) for ``geometry_mm``
+        (SOD, SDD; default: the widget's)."""
         image = self._image.value
-        kernel = model.kernel(float(self._sod.value), float(self._sdd.value), max_radius_px=64)
+        sod_mm, sdd_mm = geometry_mm or (float(self._sod.value), float(self._sdd.value))
+        if kernel is None:
+            kernel = model.kernel(sod_mm, sdd_mm, max_radius_px=KERNEL_RADIUS_PX)
         scale, translate = (1.0, 1.0), (0.0, 0.0)
         if image is not None:
             scale = tuple(np.asarray(image.scale[-2:], float))
@@ -296,7 +316,7 @@ class PSFEdgeWidget(Container):
         layer = show_layer(self._viewer, kernel, "PSF kernel", "image", colormap="magma", scale=scale,
                            translate=translate, contrast_limits=(0.0, float(kernel.max())))
         layer.gamma = 0.4  # show the tail
-        layer.metadata.update({SOD_KEY: float(self._sod.value), SDD_KEY: float(self._sdd.value),
+        layer.metadata.update({SOD_KEY: sod_mm, SDD_KEY: sdd_mm,
                                "psf": model.to_dict()})
         return layer
 
