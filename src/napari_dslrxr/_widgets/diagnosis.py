@@ -69,6 +69,20 @@ def summary_text(result: DiagnosisResult) -> str:
     return "\n".join(lines)
 
 
+def binned_residual_maps(result: DiagnosisResult) -> dict[str, np.ndarray]:
+    """The residual maps binned ``BINNED_BLOCK`` x ``BINNED_BLOCK``, before ("base model") and
+    after ("final model")."""
+    return {stage: multiscale_maps(z, result.mask, scales=(BINNED_BLOCK,))[BINNED_BLOCK]
+            for z, stage in ((result.z_base, "base model"), (result.z_final, "final model"))}
+
+
+def diagnose_for_display(scene: Scene, recording: np.ndarray, options: DiagnosisOptions,
+                         progress=None) -> tuple[DiagnosisResult, dict[str, np.ndarray]]:
+    """Worker job: the diagnosis and its binned maps (computed here, not on the GUI thread)."""
+    result = diagnose_scene(scene, recording, options, progress=progress)
+    return result, binned_residual_maps(result)
+
+
 class DiagnosisWidget(ReportButtonsMixin, Container):
     """Run the mismatch diagnosis on a recording layer and a scene; show residuals and effects."""
 
@@ -166,16 +180,17 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         self._input_names.insert(0, f"recording layer '{layer.name}' ({recording.shape[1]}x{recording.shape[0]} px)")
         self._run.enabled = False
         self._readout.value = "diagnosing..."
-        return run_in_worker(diagnose_scene, scene, recording, options, progress=self._job.callback,
-                             desc="mismatch diagnosis", on_returned=lambda result: self._show(layer, result),
+        return run_in_worker(diagnose_for_display, scene, recording, options, progress=self._job.callback,
+                             desc="mismatch diagnosis", on_returned=lambda out: self._show(layer, *out),
                              on_finished=self._done, panel=self._job, readout=self._readout)
 
     def cancel(self) -> None:
         """Stop the diagnosis at its next step (the Cancel button)."""
         self._job.cancel()
 
-    def _show(self, layer, result: DiagnosisResult) -> None:
+    def _show(self, layer, result: DiagnosisResult, binned: dict[str, np.ndarray] | None = None) -> None:
         self.result = result
+        binned = binned if binned is not None else binned_residual_maps(result)
         scale = np.asarray(layer.scale[-2:], float)
         z_scale = tuple(scale * result.binning)
         # A binned pixel's centre sits (binning - 1) / 2 recording pixels in.
@@ -191,8 +206,7 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         for z, stage, shift in ((result.z_base, "base model", 0.0 * beside), (result.z_final, "final model", beside)):
             show_layer(self._viewer, z, f"residual z ({stage})", "image", colormap="bwr", contrast_limits=Z_LIMITS,
                        scale=z_scale, translate=tuple(np.asarray(z_translate) + shift), visible=False)
-            binned = multiscale_maps(z, result.mask, scales=(block,))[block]
-            show_layer(self._viewer, binned, f"residual z {block}x{block} ({stage})", "image", colormap="bwr",
+            show_layer(self._viewer, binned[stage], f"residual z {block}x{block} ({stage})", "image", colormap="bwr",
                        contrast_limits=BINNED_Z_LIMITS, scale=binned_scale,
                        translate=tuple(np.asarray(binned_translate) + shift), visible=True)
         top_left = np.asarray(layer.translate[-2:], float) - scale * 0.5

@@ -44,11 +44,14 @@ def pulse_summary(result: ImpulseResult) -> str:
 
 
 def clean_for_display(image: np.ndarray, params: ImpulseParams, space: str,
-                      progress=None) -> tuple[ImpulseResult, tuple[float, float]]:
-    """Worker job: the core stage, then the cleaned image's display range (computed here, not
-    on the GUI thread)."""
+                      progress=None) -> tuple[ImpulseResult, tuple[float, float], dict[str, np.ndarray], str]:
+    """Worker job: the core stage, then what the widget shows of it (computed here, not on
+    the GUI thread, where a full-size pass per channel would freeze the viewer): the cleaned
+    image's display range, the pulse masks as label images, the read-out."""
     result = remove_impulses(image, params, space=space, progress=progress)
-    return result, robust_limits(result.image)
+    labels = {name: mask.astype(np.uint8) * np.uint8(CHANNEL_LABEL.get(name, 1))
+              for name, mask in result.masks.items()}
+    return result, robust_limits(result.image), labels, pulse_summary(result)
 
 
 class ImpulseWidget(Container):
@@ -129,13 +132,13 @@ class ImpulseWidget(Container):
         if self._readout.value == "running...":
             self._readout.value = self._job.status.value
 
-    def _show(self, layer: napari.layers.Image, result: ImpulseResult, limits: tuple[float, float]) -> None:
+    def _show(self, layer: napari.layers.Image, result: ImpulseResult, limits: tuple[float, float],
+              labels: dict[str, np.ndarray], summary: str) -> None:
         self.result = result
         geometry = same_geometry(layer)
         show_layer(self._viewer, result.image, f"{layer.name} cleaned", "image",
                    rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, **geometry)
-        for name, mask in result.masks.items():
-            labels = mask.astype(np.uint8) * np.uint8(CHANNEL_LABEL.get(name, 1))
-            show_layer(self._viewer, labels, f"{layer.name} pulses {name}", "labels",
+        for name, label_image in labels.items():
+            show_layer(self._viewer, label_image, f"{layer.name} pulses {name}", "labels",
                        opacity=0.8, **geometry)
-        self._readout.value = pulse_summary(result)
+        self._readout.value = summary
