@@ -553,6 +553,9 @@ def test_detector_quality_buttons(plugin, tmp_path, monkeypatch, shots):
     name, widget = "Detector quality", plugin.widgets["Detector quality"]
     viewer = plugin.viewer
     offered = widget._flats.choices
+    for choice in (widget._flats, widget._darks):  # several entries visible (not two and a scroll bar)
+        rows_shown = choice.native.viewport().height() / choice.native.sizeHintForRow(0)
+        assert rows_shown >= qc_module.LIST_ROWS - 0.5, rows_shown
     assert "QC flat 1" in offered and "DSLR radiograph" not in offered  # colour layers are not a detector channel
     plugin.click(name, "Measure MTF, NNPS, DQE", refused="choose at least one flat layer")
     widget._flats.value = ["QC flat 1", "QC flat 2"]

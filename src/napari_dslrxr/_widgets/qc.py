@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, FileEdit, PushButton, Select
+from magicgui.widgets import ComboBox, Container, FileEdit, Label, PushButton, Select
 
 from ..core.errors import ParameterError
 from ..core.qc import DetectorQuality, QcParams, measure_detector_quality, write_qc_outputs
@@ -32,6 +32,8 @@ if TYPE_CHECKING:
 #: Where along the frequency axis the read-out lists the numbers (fractions of Nyquist).
 READOUT_FRACTIONS = (0.25, 0.5, 0.75)
 _STYLE = {"horizontal": ("C0", "-"), "vertical": ("C3", "--")}
+#: Rows the flat and dark layer lists show without scrolling.
+LIST_ROWS = 5
 
 
 def quality_summary(result: DetectorQuality) -> str:
@@ -48,6 +50,13 @@ def quality_summary(result: DetectorQuality) -> str:
     lines += [f"edge {k + 1}: {e.direction}, {e.angle_deg:.2f}°" for k, e in enumerate(result.edges)]
     lines += [f"warning: {w}" for w in result.warnings]
     return "\n".join(lines)
+
+
+def _titled(widget) -> Container:
+    """``widget`` with its label above it (a list keeps the column's width)."""
+    column = Container(widgets=[Label(value=widget.label), widget], labels=False)
+    column.margins = (0, 0, 0, 0)
+    return column
 
 
 def _row(*widgets, labels: bool = False) -> Container:
@@ -86,10 +95,16 @@ class QCWidget(ReportButtonsMixin, Container):
         self._write = PushButton(text="Write report", enabled=False, tooltip="write qc.json, qc.csv and qc.html")
         self._open = PushButton(text="Open report", enabled=False, tooltip="show qc.html in the web browser")
         self._restore = restore_defaults_button(self.restore_defaults)
+        from qtpy.QtCore import Qt
+
+        # Side by side, each titled above its list so the list has the column's whole width,
+        # LIST_ROWS rows high (more scroll): names are elided in the middle, not cut at the end.
         for choice in (self._flats, self._darks):
-            choice.native.setMaximumHeight(64)  # a few rows, scrolled: the dock stays short
-        # side by side where they belong together, so the dock is no taller than the others'
-        layers = _row(self._flats, self._darks, labels=True)
+            native = choice.native
+            native.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+            native.setTextElideMode(Qt.TextElideMode.ElideMiddle)
+            native.setFixedHeight(LIST_ROWS * (native.fontMetrics().lineSpacing() + 2) + 2 * native.frameWidth())
+        layers = _row(*(_titled(choice) for choice in (self._flats, self._darks)))
         actions = _row(self._draw, self._run)
         report = _row(self._write, self._open, self._restore)
         super().__init__(widgets=[layers, self._edge, self._beam, self._kerma, self._pitch, self._roi_size, actions,
