@@ -180,6 +180,11 @@ def measure(where: Path | None = None) -> dict:
     click_suite = load_test_module("tests/_widgets/test_click_every_button.py", "click_suite")
     viewer = napari.Viewer(show=True)
     plugin = click_suite.Plugin(viewer, _Bot())
+    from napari_dslrxr._cli import view as view_command
+
+    freeze = getattr(view_command, "freeze_startup_objects", None)  # absent in older versions (baselines)
+    if freeze is not None:
+        freeze()  # as ``dslrxr view`` does once the viewer is open
     layers, w = viewer.layers, plugin.widgets
     w["Impulse removal"]._image.value = layers["DSLR radiograph"]
     flat = w["Flat field"]

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
+from napari_dslrxr._cli import view as view_module
 from napari_dslrxr._cli.view import plugin_widget_names
 from napari_dslrxr.cli import main
 from napari_dslrxr.core.io import write_tiff
@@ -39,10 +43,31 @@ def test_view_opens_files_and_docks_every_widget(make_napari_viewer, tmp_path, m
 
     monkeypatch.setattr(napari, "Viewer", fake_viewer)
     monkeypatch.setattr(napari, "run", lambda *a, **k: None)
+    frozen_with = []  # the real freeze would keep this test process's viewers alive
+    monkeypatch.setattr(view_module, "freeze_startup_objects",
+                        lambda: frozen_with.append([layer.name for layer in viewers[-1].layers]))
     assert main(["view", str(path)]) == 0
+    assert frozen_with == [["chest"]]  # frozen once, after the files were opened
     (viewer,) = viewers
     assert [layer.name for layer in viewer.layers] == ["chest"]
     np.testing.assert_array_equal(viewer.layers["chest"].data, image)
     docked = set(viewer.window.dock_widgets)
     for name in plugin_widget_names():
         assert any(name in key for key in docked), (name, docked)
+
+
+def test_startup_objects_are_left_out_of_later_collections():
+    """After the viewer opens, a full collection walks only what was made since (napari runs
+    one on the GUI thread whenever a layer is removed). In a child process: freezing is for
+    the life of the process."""
+    code = (
+        "import gc, time\n"
+        "from napari_dslrxr._cli.view import freeze_startup_objects\n"
+        "alive = [[i] for i in range(300_000)]\n"
+        "freeze_startup_objects()\n"
+        "assert gc.get_freeze_count() >= 300_000, gc.get_freeze_count()\n"
+        "print('frozen', gc.get_freeze_count())\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "frozen" in done.stdout
