@@ -27,6 +27,7 @@ from ..core.psf import PSFModel, save_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, notify_info, readout_label, run_in_worker
 from ._layers import show_layer
+from ._plots import ShownFigureMixin, render_figure, worker_plot
 
 if TYPE_CHECKING:
     import napari
@@ -35,6 +36,8 @@ SOD_KEY, SDD_KEY = "source_to_object_mm", "source_to_detector_mm"
 SHAPES = {"exponential (p = 1, SABER)": 1.0, "Gaussian (p = 2)": 2.0}
 #: Half-width cap of the "PSF kernel" layer (the kernel the Deconvolution widget can take).
 KERNEL_RADIUS_PX = 64
+#: Height of the profile plot (fixed: a read-out changing its length must not move it).
+PLOT_HEIGHT_PX = 210
 
 
 def roi_layer_name(image_name: str) -> str:
@@ -93,14 +96,33 @@ def fit_summary(model: PSFModel) -> str:
     return "\n".join(lines)
 
 
+def draw_profiles(figure, model: PSFModel) -> None:
+    """Measured (dots) versus fitted (lines) ESF and LSF of every ROI."""
+    ax_esf, ax_lsf = figure.subplots(1, 2)
+    for i, edge in enumerate(model.fit_report.get("edges", [])):
+        prof = edge["profile"]
+        colour = f"C{i % 10}"
+        label = f"{edge['name']}"
+        ax_esf.plot(prof["distance_px"], prof["esf_measured"], ".", ms=2, color=colour, alpha=0.5)
+        ax_esf.plot(prof["distance_px"], prof["esf_fitted"], "-", lw=1, color=colour, label=label)
+        ax_lsf.plot(prof["distance_px"], prof["lsf_measured"], ".", ms=2, color=colour, alpha=0.5)
+        ax_lsf.plot(prof["distance_px"], prof["lsf_fitted"], "-", lw=1, color=colour)
+    ax_esf.set(title="edge spread (dots: measured)", xlabel="distance (px)", xlim=(-15, 15))
+    ax_lsf.set(title="line spread", xlabel="distance (px)", xlim=(-15, 15))
+    ax_esf.legend(fontsize=6, loc="lower right")
+
+
 def fit_for_display(edges, pixel_pitch_mm: float, *, shape_power: float, progress,
-                    source_to_object_mm: float, source_to_detector_mm: float) -> tuple[PSFModel, np.ndarray, str]:
+                    source_to_object_mm: float, source_to_detector_mm: float,
+                    plot_size_px: tuple[int, int] | None = None) -> tuple[PSFModel, np.ndarray, str, tuple | None]:
     """The joint edge fit, and what the widget shows of it: the kernel at the chosen image's
-    geometry and the read-out. Runs in the worker: the kernel alone takes about half a
-    second, which on the GUI thread would freeze the viewer."""
+    geometry, the read-out, and the profile plot rendered at ``plot_size_px`` (none without).
+    Runs in the worker: on the GUI thread the kernel alone took about half a second and the
+    plot a few tenths, with the viewer frozen."""
     model = fit_edges(edges, pixel_pitch_mm, shape_power=shape_power, progress=progress)
     kernel = model.kernel(source_to_object_mm, source_to_detector_mm, max_radius_px=KERNEL_RADIUS_PX)
-    return model, kernel, fit_summary(model)
+    plot = None if plot_size_px is None else render_figure(lambda figure: draw_profiles(figure, model), plot_size_px)
+    return model, kernel, fit_summary(model), plot
 
 
 def grey(data: np.ndarray) -> np.ndarray:
@@ -109,7 +131,7 @@ def grey(data: np.ndarray) -> np.ndarray:
     return arr.mean(axis=2) if arr.ndim == 3 else arr
 
 
-class PSFEdgeWidget(Container):
+class PSFEdgeWidget(ShownFigureMixin, Container):
     """Draw edge ROIs over radiographs, enter distances, fit the PSF, show profiles and kernel."""
 
     def __init__(self, viewer: napari.viewer.Viewer):
@@ -141,7 +163,7 @@ class PSFEdgeWidget(Container):
                                   self._save, self._restore])
         self.model: PSFModel | None = None
         self.edges_used: list[tuple[str, tuple[int, int, int, int]]] = []
-        self._figure, self._canvas = self._make_plot()
+        self._plot = worker_plot(self, PLOT_HEIGHT_PX, self._readout, "the fitted edge profiles")
         self._image.changed.connect(self._image_chosen)
         self._sod.changed.connect(self._store_distances)
         self._sdd.changed.connect(self._store_distances)
@@ -158,42 +180,6 @@ class PSFEdgeWidget(Container):
         defaults = EdgeFitSettings()
         self._pitch.value = defaults.pixel_pitch_mm
         self._shape.value = next(name for name, power in SHAPES.items() if power == defaults.shape_power)
-
-    # -- the profile plot ----------------------------------------------------------------------------
-    def _make_plot(self):
-        try:
-            from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
-            from matplotlib.figure import Figure
-        except ImportError:  # the plot is optional: pip install 'napari-dslrxr[napari]'
-            self._readout.value = "install matplotlib to see the fitted edge profiles"
-            return None, None
-
-        figure = Figure(figsize=(4.0, 2.6), dpi=80, tight_layout=True)
-        canvas = FigureCanvasQTAgg(figure)
-        # Fixed height: a read-out changing its number of lines must not resize the canvas,
-        # which would redraw the whole figure on the GUI thread (100 ms or more).
-        canvas.setFixedHeight(210)
-        self.native.layout().addWidget(canvas)
-        return figure, canvas
-
-    def plot_profiles(self, model: PSFModel) -> None:
-        """Measured (dots) versus fitted (lines) ESF and LSF of every ROI."""
-        if self._figure is None:
-            return
-        self._figure.clear()
-        ax_esf, ax_lsf = self._figure.subplots(1, 2)
-        for i, edge in enumerate(model.fit_report.get("edges", [])):
-            prof = edge["profile"]
-            colour = f"C{i % 10}"
-            label = f"{edge['name']}"
-            ax_esf.plot(prof["distance_px"], prof["esf_measured"], ".", ms=2, color=colour, alpha=0.5)
-            ax_esf.plot(prof["distance_px"], prof["esf_fitted"], "-", lw=1, color=colour, label=label)
-            ax_lsf.plot(prof["distance_px"], prof["lsf_measured"], ".", ms=2, color=colour, alpha=0.5)
-            ax_lsf.plot(prof["distance_px"], prof["lsf_fitted"], "-", lw=1, color=colour)
-        ax_esf.set(title="edge spread (dots: measured)", xlabel="distance (px)", xlim=(-15, 15))
-        ax_lsf.set(title="line spread", xlabel="distance (px)", xlim=(-15, 15))
-        ax_esf.legend(fontsize=6, loc="lower right")
-        self._canvas.draw()
 
     # -- per-image distances and ROI layers -----------------------------------------------------------
     def _image_chosen(self, *_args) -> None:
@@ -280,6 +266,7 @@ class PSFEdgeWidget(Container):
         geometry_mm = (float(self._sod.value), float(self._sdd.value))
         return run_in_worker(fit_for_display, edges, pitch, shape_power=power, progress=self._job.callback,
                              source_to_object_mm=geometry_mm[0], source_to_detector_mm=geometry_mm[1],
+                             plot_size_px=None if self._plot is None else self._plot.size_px(),
                              desc="PSF edge fit", on_returned=lambda out: self._show(*out, geometry_mm),
                              on_finished=self._done,
                              panel=self._job, readout=self._readout)
@@ -293,11 +280,13 @@ class PSFEdgeWidget(Container):
         if self._readout.value.endswith("..."):
             self._readout.value = self._job.status.value
 
-    def _show(self, model: PSFModel, kernel: np.ndarray, summary: str, geometry_mm: tuple[float, float]) -> None:
+    def _show(self, model: PSFModel, kernel: np.ndarray, summary: str, plot: tuple | None,
+              geometry_mm: tuple[float, float]) -> None:
         self.model = model
         self._save.enabled = True
         self._readout.value = summary
-        self.plot_profiles(model)
+        if plot is not None:
+            self._plot.show(*plot)
         self.show_kernel(model, kernel, geometry_mm)
 
     def show_kernel(self, model: PSFModel, kernel: np.ndarray | None = None,

@@ -24,6 +24,7 @@ from ..core.qc import DetectorQuality, QcParams, measure_detector_quality, write
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker
 from ._layers import reset_choices, single_channel_layers
+from ._plots import ShownFigureMixin, render_figure, worker_plot
 from .psf_edges import edge_roi_layer, rectangles_to_rois, roi_layer_name
 
 if TYPE_CHECKING:
@@ -34,6 +35,8 @@ READOUT_FRACTIONS = (0.25, 0.5, 0.75)
 _STYLE = {"horizontal": ("C0", "-"), "vertical": ("C3", "--")}
 #: Rows the flat and dark layer lists show without scrolling.
 LIST_ROWS = 5
+#: Height of the curves' plot (fixed: a read-out changing its length must not move it).
+PLOT_HEIGHT_PX = 200
 
 
 def quality_summary(result: DetectorQuality) -> str:
@@ -52,6 +55,42 @@ def quality_summary(result: DetectorQuality) -> str:
     return "\n".join(lines)
 
 
+def draw_curves(figure, result: DetectorQuality) -> None:
+    """MTF and DQE (left) and NNPS (right, log) against frequency, each measured direction,
+    with ±1 standard-uncertainty bands."""
+    left, right = figure.subplots(1, 2)
+    f = result.frequency_cy_per_mm
+    for direction, curves in result.per_direction.items():
+        colour, style = _STYLE.get(direction, ("C2", "-"))
+        for ax, value, unc, width, label in (
+                (left, curves.mtf, curves.mtf_uncertainty, 1.4, f"MTF {direction}"),
+                (left, curves.dqe, curves.dqe_uncertainty, 0.8, f"DQE {direction}"),
+                (right, curves.nnps_mm2, curves.nnps_uncertainty_mm2, 1.2, direction)):
+            ax.plot(f, value, color=colour, ls=style, lw=width, label=label,
+                    marker="" if width > 1 or ax is right else ".", ms=3)
+            ax.fill_between(f, value - np.nan_to_num(unc), value + np.nan_to_num(unc), color=colour, alpha=0.25)
+    left.set_title("MTF (line), DQE (dots)", fontsize=9)
+    right.set_title("NNPS (mm²)", fontsize=9)
+    left.set_ylim(0, 1.05)
+    right.set_yscale("log")
+    for ax in (left, right):
+        ax.axvline(result.nyquist_cy_per_mm, color="0.5", lw=0.8, ls=":")
+        ax.set_xlim(0, 1.02 * result.nyquist_cy_per_mm)
+        ax.set_xlabel("cycles/mm", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+    left.legend(fontsize=6, loc="upper right")
+
+
+def measure_for_display(flats, darks, edges, *, plot_size_px: tuple[int, int] | None = None,
+                        **kwargs) -> tuple[DetectorQuality, tuple | None]:
+    """Worker job: the measurement and its curves rendered at ``plot_size_px`` (none without),
+    so the GUI thread only shows the pixels."""
+    result = measure_detector_quality(flats, darks, edges, **kwargs)
+    plot = None if plot_size_px is None else render_figure(lambda figure: draw_curves(figure, result), plot_size_px)
+    return result, plot
+
+
 def _titled(widget) -> Container:
     """``widget`` with its label above it (a list keeps the column's width)."""
     column = Container(widgets=[Label(value=widget.label), widget], labels=False)
@@ -65,7 +104,7 @@ def _row(*widgets, labels: bool = False) -> Container:
     return row
 
 
-class QCWidget(ReportButtonsMixin, Container):
+class QCWidget(ShownFigureMixin, ReportButtonsMixin, Container):
     """Measure a detector's MTF, NNPS and DQE from flat, dark and slanted-edge layers."""
 
     REPORT_PAGE = "html"
@@ -112,7 +151,7 @@ class QCWidget(ReportButtonsMixin, Container):
         self.result: DetectorQuality | None = None
         self.report_paths: dict[str, Path] = {}
         self._input_names: list[str] = []
-        self._figure, self._canvas = self._make_plot()
+        self._plot = worker_plot(self, PLOT_HEIGHT_PX, self._readout, "the curves")
         self._draw.changed.connect(self.roi_layer)
         self._run.changed.connect(self.run)
         self._write.changed.connect(self.write)
@@ -191,66 +230,24 @@ class QCWidget(ReportButtonsMixin, Container):
                              + edge_names)
         self._run.enabled = False
         self._readout.value = "measuring..."
-        return run_in_worker(measure_detector_quality, flats, darks, edges, params=settings, edge_rois=rois,
+        return run_in_worker(measure_for_display, flats, darks, edges, params=settings, edge_rois=rois,
+                             plot_size_px=None if self._plot is None else self._plot.size_px(),
                              names={"flats": flat_names, "darks": dark_names, "edges": edge_names},
-                             progress=self._job.callback, desc="detector quality", on_returned=self._show,
+                             progress=self._job.callback, desc="detector quality",
+                             on_returned=lambda out: self._show(*out),
                              on_finished=self._done, panel=self._job, readout=self._readout)
 
     def cancel(self) -> None:
         """Stop the measurement at its next step (the Cancel button)."""
         self._job.cancel()
 
-    def _show(self, result: DetectorQuality) -> None:
+    def _show(self, result: DetectorQuality, plot: tuple | None = None) -> None:
         self.result = result
-        # the list boxes are short: say what was measured from
+        # say what was measured from (the lists scroll)
         self._readout.value = f"from {'; '.join(self._input_names)}\n{quality_summary(result)}"
-        self.plot_curves(result)
+        if plot is not None:
+            self._plot.show(*plot)
         self._write.enabled = True
-
-    # -- the curves --------------------------------------------------------------------------------
-    def _make_plot(self):
-        try:
-            from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
-            from matplotlib.figure import Figure
-        except ImportError:  # the plot is optional: pip install 'napari-dslrxr[napari]'
-            self._readout.value = "install matplotlib to see the curves"
-            return None, None
-
-        figure = Figure(figsize=(4.2, 2.7), dpi=80, tight_layout=True)
-        canvas = FigureCanvasQTAgg(figure)
-        canvas.setFixedHeight(200)  # a read-out changing its length must not resize (and redraw) the plot
-        self.native.layout().addWidget(canvas)
-        return figure, canvas
-
-    def plot_curves(self, result: DetectorQuality) -> None:
-        """MTF and DQE (left) and NNPS (right, log) against frequency, each measured direction,
-        with ±1 standard-uncertainty bands."""
-        if self._figure is None:
-            return
-        self._figure.clear()
-        left, right = self._figure.subplots(1, 2)
-        f = result.frequency_cy_per_mm
-        for direction, curves in result.per_direction.items():
-            colour, style = _STYLE.get(direction, ("C2", "-"))
-            for ax, value, unc, width, label in (
-                    (left, curves.mtf, curves.mtf_uncertainty, 1.4, f"MTF {direction}"),
-                    (left, curves.dqe, curves.dqe_uncertainty, 0.8, f"DQE {direction}"),
-                    (right, curves.nnps_mm2, curves.nnps_uncertainty_mm2, 1.2, direction)):
-                ax.plot(f, value, color=colour, ls=style, lw=width, label=label,
-                                marker="" if width > 1 or ax is right else ".", ms=3)
-                ax.fill_between(f, value - np.nan_to_num(unc), value + np.nan_to_num(unc), color=colour, alpha=0.25)
-        left.set_title("MTF (line), DQE (dots)", fontsize=9)
-        right.set_title("NNPS (mm²)", fontsize=9)
-        left.set_ylim(0, 1.05)
-        right.set_yscale("log")
-        for ax in (left, right):
-            ax.axvline(result.nyquist_cy_per_mm, color="0.5", lw=0.8, ls=":")
-            ax.set_xlim(0, 1.02 * result.nyquist_cy_per_mm)
-            ax.set_xlabel("cycles/mm", fontsize=8)
-            ax.grid(alpha=0.3)
-            ax.tick_params(labelsize=7)
-        left.legend(fontsize=6, loc="upper right")
-        self._canvas.draw()
 
     # -- report ------------------------------------------------------------------------------------
     @guarded("QC report")
