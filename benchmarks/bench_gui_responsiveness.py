@@ -197,8 +197,13 @@ def measure(where: Path | None = None) -> dict:
     diagnosis = w["Diagnosis"]
     diagnosis._recording.value = layers["simulated recording"]
     diagnosis._max_terms.value = 1
+    qc = w["Detector quality"]
+    qc._flats.value, qc._darks.value = ["QC flat 1", "QC flat 2"], ["QC dark"]
+    qc._edge.value = layers["QC edge"]
+    qc.roi_layer().add_rectangles([click_suite.rectangle(96, 160, 416, 352)])
     jobs = [("Impulse removal", "Remove impulses"), ("Flat field", "Apply flat field"), ("PSF from edges", "Fit PSF"),
-            ("Contrast", "Apply at full resolution"), ("Diagnosis", "Diagnose")]
+            ("Contrast", "Apply at full resolution"), ("Diagnosis", "Diagnose"),
+            ("Detector quality", "Measure MTF, NNPS, DQE")]
     load_before = os.getloadavg()[0]
 
     def idle_gap_ms() -> float:
