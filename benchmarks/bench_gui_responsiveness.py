@@ -200,7 +200,7 @@ def measure(where: Path | None = None) -> dict:
     qc = w["Detector quality"]
     qc._flats.value, qc._darks.value = ["QC flat 1", "QC flat 2"], ["QC dark"]
     qc._edge.value = layers["QC edge"]
-    qc.roi_layer().add_rectangles([click_suite.rectangle(96, 160, 416, 352)])
+    qc_rois = qc.roi_layer()  # filled only for the QC click: the PSF fit takes every "<image> ROIs"
     jobs = [("Impulse removal", "Remove impulses"), ("Flat field", "Apply flat field"), ("PSF from edges", "Fit PSF"),
             ("Contrast", "Apply at full resolution"), ("Diagnosis", "Diagnose"),
             ("Detector quality", "Measure MTF, NNPS, DQE")]
@@ -226,7 +226,11 @@ def measure(where: Path | None = None) -> dict:
             plugin.qtbot.wait(int(SETTLE_S * 1000))
             if tracer is not None:
                 tracer.mark(f"{widget_name}: {text}")
+            if widget_name == "Detector quality":
+                qc_rois.add_rectangles([click_suite.rectangle(96, 160, 416, 352)])
             plugin.click(widget_name, text, timeout_ms=120_000)
+            if widget_name == "Detector quality":
+                qc_rois.data = []
         runs.append({f"{widget}: {text}": {phase: round(value * 1000, 1) for phase, value in phases.items()}
                      for (widget, text), phases in click_suite.GAPS.items()})
     if tracer is not None:
