@@ -3,6 +3,8 @@
 Headless (numpy/scipy), no threads; long steps report ``progress(done, total)``.
 
 * :func:`slanted_edge_mtf` - presampled MTF from a slanted edge;
+* :func:`edge_method_mtf` - what that measurement reads from a known presampled MTF (its LSF
+  window included), to compare a blur model with it like for like;
 * :func:`nnps_from_flats` - NNPS from detrended, half-overlapping ROIs of flats;
 * :func:`conversion_function` - mean signal against air kerma; refuses a non-linear response;
 * :func:`dqe` - DQE = MTF² / (q NNPS);
@@ -18,7 +20,7 @@ from .._lazy import lazy_exports
 
 _PUBLIC: dict[str, tuple[str, ...]] = {
     "params": ("QcParams", "SNR2_IN_PER_UGY", "EDGE_ANGLE_RANGE_DEG"),
-    "edge": ("EdgeMTF", "slanted_edge_mtf"),
+    "edge": ("EdgeMTF", "edge_method_mtf", "slanted_edge_mtf"),
     "nnps": ("NNPSResult", "nnps_from_flats"),
     "conversion": ("ConversionFunction", "NonLinearResponseError", "conversion_function"),
     "measure": ("DetectorQuality", "DirectionResult", "dqe", "measure_detector_quality", "photon_fluence_per_mm2"),

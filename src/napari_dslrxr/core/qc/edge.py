@@ -40,6 +40,8 @@ class EdgeMTF:
     n_segments : int
     n_outliers : int
         Pixels left out as spots.
+    lsf_half_width_px : int
+        Half width of the Hann window actually applied to the LSF (the frame may shorten it).
     warnings : list of str
     """
 
@@ -54,6 +56,7 @@ class EdgeMTF:
     lsf: np.ndarray
     n_segments: int
     n_outliers: int
+    lsf_half_width_px: int = 0
     warnings: list = field(default_factory=list)
 
 
@@ -154,6 +157,13 @@ def _mtf_from_esf(esf, step_mm, pitch_mm, oversampling, half_width_px, n_fft):
     """LSF (central difference), Hann window, FFT, with the binning and difference corrected."""
     lsf = np.gradient(esf)
     centre = float(np.sum(np.arange(lsf.size) * np.abs(lsf)) / max(np.sum(np.abs(lsf)), 1e-30))
+    freq, mtf = _mtf_from_lsf(lsf, centre, step_mm, oversampling, half_width_px, n_fft)
+    return freq, mtf, lsf
+
+
+def _mtf_from_lsf(lsf, centre, step_mm, oversampling, half_width_px, n_fft):
+    """Hann window of ``half_width_px`` about ``centre`` (in samples), FFT, normalisation at
+    f = 0, and the bin and central-difference corrections (None when there is no contrast)."""
     k = np.arange(lsf.size) - centre
     half = half_width_px * oversampling
     window = np.where(np.abs(k) <= half, 0.5 * (1 + np.cos(np.pi * k / half)), 0.0)
@@ -161,13 +171,55 @@ def _mtf_from_esf(esf, step_mm, pitch_mm, oversampling, half_width_px, n_fft):
     spectrum = np.abs(np.fft.rfft(windowed, n_fft))
     freq = np.fft.rfftfreq(n_fft, d=step_mm)
     if not spectrum[0] > 0:
-        return freq, None, lsf
+        return freq, None
     mtf = spectrum / spectrum[0]
     # The bin average is a box of one bin width, the central difference a transfer of
     # sinc(2 f step): divide both out (IEC/ISO practice) below the Nyquist frequency.
     correction = np.sinc(freq * step_mm) * np.sinc(2 * freq * step_mm)
     mtf = mtf / np.maximum(correction, 0.2)
-    return freq, mtf, lsf
+    return freq, mtf
+
+
+def _fft_length(half_width_px: int, oversampling: int) -> int:
+    return 1 << int(math.ceil(math.log2(max(4096, 8 * (2 * half_width_px + 4) * oversampling))))
+
+
+def edge_method_mtf(presampled_mtf, frequency_cy_per_mm, pixel_pitch_mm: float, *, lsf_half_width_px: int,
+                    oversampling: int = 4) -> np.ndarray:
+    """What :func:`slanted_edge_mtf` reads, without noise, from an edge whose presampled MTF
+    (blur x pixel aperture along the edge normal) is ``presampled_mtf``.
+
+    The measurement sees the presampled MTF through its own operator: the ESF bins (a box of one
+    bin width), the central difference, and the Hann window of ``lsf_half_width_px`` on the LSF,
+    normalised at f = 0; the first two are divided out again, the window is not. A blur whose line
+    spread reaches beyond the window (a long tail) therefore reads higher at low frequencies than
+    its presampled MTF. Comparing a blur model with a measured MTF like for like means passing
+    the model through this function with the measurement's window (``EdgeMTF.lsf_half_width_px``).
+
+    Parameters
+    ----------
+    presampled_mtf : callable
+        Frequency (cycles/mm, array) -> presampled MTF, 1 at 0.
+    frequency_cy_per_mm : array
+        Where to evaluate.
+    pixel_pitch_mm : float
+    lsf_half_width_px, oversampling : int
+        The measurement's window half width and ESF bins per pixel.
+    """
+    step_mm = pixel_pitch_mm / oversampling
+    n_fft = _fft_length(lsf_half_width_px, oversampling)
+    # The central difference of the bin-averaged ESF samples the line spread convolved with a box
+    # of one bin and a box of two bins (transfer sinc(f step) sinc(2 f step)), times the step.
+    # Sampled at the bin pitch over one FFT length (at least eight window widths, so the periodic
+    # copies of the line spread fall far outside the window).
+    n = n_fft
+    grid = np.fft.rfftfreq(n, d=step_mm)
+    transfer = np.asarray(presampled_mtf(grid), dtype=np.float64) * np.sinc(grid * step_mm) * np.sinc(2 * grid * step_mm)
+    lsf = np.fft.fftshift(np.fft.irfft(transfer, n))
+    freq, mtf = _mtf_from_lsf(lsf, n // 2, step_mm, oversampling, lsf_half_width_px, n_fft)
+    if mtf is None:
+        raise ValueError("the presampled MTF has no zero-frequency response")
+    return np.interp(np.abs(np.asarray(frequency_cy_per_mm, dtype=np.float64)), freq, mtf)
 
 
 def slanted_edge_mtf(edge_image: np.ndarray, pixel_pitch_mm: float, *, oversampling: int = 4,
@@ -227,7 +279,7 @@ def slanted_edge_mtf(edge_image: np.ndarray, pixel_pitch_mm: float, *, oversampl
                                "oversampled (tilt it by 1.5-3 deg)")
     half = int(min(lsf_half_width_px, (data.shape[1] - 4) // 2 - 2))
     step_mm = pixel_pitch_mm / oversampling
-    n_fft = 1 << int(math.ceil(math.log2(max(4096, 8 * (2 * half + 4) * oversampling))))
+    n_fft = _fft_length(half, oversampling)
     dist_px, rows_of = _perpendicular_distance_px(data.shape, slope, intercept)
     sel = mask & (np.abs(dist_px) <= half + 2)
     centres, esf = _esf(data, dist_px, sel, oversampling, half)
@@ -269,4 +321,5 @@ def slanted_edge_mtf(edge_image: np.ndarray, pixel_pitch_mm: float, *, oversampl
         line = (intercept, 0.0, slope * (length - 1) + intercept, float(length - 1))
     return EdgeMTF(direction=direction, frequency_cy_per_mm=freq[keep], mtf=mtf[keep], mtf_uncertainty=unc,
                    angle_deg=angle, edge_line=tuple(float(v) for v in line), esf_distance_mm=dist, esf=esf,
-                   lsf=lsf, n_segments=len(seg_mtfs), n_outliers=n_outliers, warnings=warnings)
+                   lsf=lsf, n_segments=len(seg_mtfs), n_outliers=n_outliers, lsf_half_width_px=half,
+                   warnings=warnings)

@@ -146,7 +146,8 @@ class DetectorQuality:
             "nyquist_cy_per_mm": self.nyquist_cy_per_mm,
             "edges": [{"direction": e.direction, "angle_deg": e.angle_deg,
                        "edge_line_rc": _in_frame(e.edge_line, roi),
-                       "roi": roi, "n_segments": e.n_segments, "n_outliers": e.n_outliers}
+                       "roi": roi, "n_segments": e.n_segments, "n_outliers": e.n_outliers,
+                       "lsf_half_width_px": e.lsf_half_width_px, "oversampling": self.settings.get("edge_oversampling")}
                       for e, roi in zip(self.edges, self.edge_rois)],
             "nnps_rois": {"size_px": self.settings.get("roi_size_px"), "origins_rc": self.nnps.roi_origins,
                           "analysis_area": self.nnps.analysis_area, "n_rois": self.nnps.n_rois,
