@@ -92,8 +92,12 @@ def slanted_edge_mtf(image: np.ndarray, *, oversampling: int = 4, half_window_px
     cols = np.arange(grad.shape[1]) + 0.5
     centroid = (grad * cols).sum(axis=1) / grad.sum(axis=1)
     slope, intercept = np.polyfit(rows, centroid, 1)
-    for _ in range(2):   # refine the centroid in a window around the first line
-        win = np.abs(cols[None, :] - (slope * rows + intercept)[:, None]) < half_window_px
+    # Refine the centroids in a window around the line, shrinking to +-8 px: the noise of every
+    # column in the window pulls a row's centroid towards the window's centre, so a wide window
+    # drags the line towards its first estimate (on the NIQA edge: 2.98 instead of 3.18 degrees,
+    # which smeared the ESF and read the MTF 0.03-0.05 low at 0.2 cycles/pixel).
+    for reach in (half_window_px, 16.0, 8.0, 8.0):
+        win = np.abs(cols[None, :] - (slope * rows + intercept)[:, None]) < reach
         centroid = (grad * cols * win).sum(axis=1) / (grad * win).sum(axis=1)
         slope, intercept = np.polyfit(rows, centroid, 1)
     rr, cc = np.mgrid[0:img.shape[0], 0:img.shape[1]]
