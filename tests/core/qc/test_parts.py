@@ -117,3 +117,19 @@ def test_progress_is_reported_up_to_the_total():
     measure_detector_quality(flats, [], edge, pixel_pitch_mm=0.1, air_kerma_ugy=5.0, params=QcParams(roi_size_px=128),
                              progress=lambda done, total: steps.append((done, total)))
     assert steps == [(i, 5) for i in range(1, 6)]  # three flats, one edge, the DQE
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_report_draws_the_esf_rising_and_the_lsf_positive(mirrored):
+    """Dark-to-bright and bright-to-dark edges both give the report a rising ESF and a positive
+    LSF peak at the edge (the LSF of a bright-to-dark edge was drawn negative)."""
+    from napari_dslrxr.core.qc.report import esf_lsf_dark_to_bright
+
+    frame = dt.edge_frame(dt.Detector(0.1, 0.8, 20.0), (256, 256), np.random.default_rng(6), angle_deg=2.0)
+    edge = slanted_edge_mtf(frame[:, ::-1] if mirrored else frame, 0.1)
+    assert (edge.lsf.sum() < 0) == mirrored
+    distance, esf, lsf = esf_lsf_dark_to_bright(edge)
+    order = np.argsort(distance)
+    esf, lsf, distance = esf[order], lsf[order], distance[order]
+    assert esf[:20].mean() < 0.1 and esf[-20:].mean() > 0.9
+    assert lsf.max() == pytest.approx(1.0) and abs(distance[np.argmax(lsf)]) < 0.1

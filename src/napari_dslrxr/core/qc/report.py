@@ -63,6 +63,16 @@ def _shown(image: np.ndarray):
     return dict(cmap="gray", vmin=float(lo), vmax=float(hi) if hi > lo else float(lo) + 1, interpolation="nearest")
 
 
+def esf_lsf_dark_to_bright(edge) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distance (mm), ESF scaled to 0..1 and LSF scaled to a peak of 1, drawn from the dark side
+    to the bright side: the ESF rises and the LSF is positive whichever way the edge faces (a
+    bright-to-dark edge gave a negative LSF)."""
+    side = 1.0 if float(edge.lsf.sum()) >= 0 else -1.0
+    esf = (edge.esf - edge.esf.min()) / max(float(np.ptp(edge.esf)), 1e-30)
+    lsf = side * edge.lsf / max(float(np.abs(edge.lsf).max()), 1e-30)
+    return side * edge.esf_distance_mm, esf, lsf
+
+
 def geometry_figure(result: DetectorQuality) -> bytes:
     """PNG: each analysed edge with its fitted line, the flat with the NNPS area and ROIs, and the
     oversampled ESF / LSF of the first edge."""
@@ -90,12 +100,10 @@ def geometry_figure(result: DetectorQuality) -> bytes:
     ax.set_title(f"flat: NNPS area and {len(result.nnps.roi_origins)} ROIs of {size}² px", fontsize=8)
     ax.set_xticks([]), ax.set_yticks([])
     ax = axes[n_edges + 1]
-    e = result.edges[0]
-    esf = (e.esf - e.esf.min()) / max(float(np.ptp(e.esf)), 1e-30)
-    lsf = e.lsf / max(float(np.abs(e.lsf).max()), 1e-30)
-    ax.plot(e.esf_distance_mm, esf, lw=1.0, label="ESF (normalised)")
-    ax.plot(e.esf_distance_mm, lsf, lw=1.0, label="LSF (normalised)")
-    ax.set_xlabel("distance to the edge (mm)", fontsize=8)
+    distance, esf, lsf = esf_lsf_dark_to_bright(result.edges[0])
+    ax.plot(distance, esf, lw=1.0, label="ESF (normalised)")
+    ax.plot(distance, lsf, lw=1.0, label="LSF (normalised)")
+    ax.set_xlabel("distance to the edge, dark side to bright side (mm)", fontsize=8)
     ax.set_title(f"oversampled ESF/LSF, {result.settings.get('edge_oversampling')} bins per pixel", fontsize=8)
     ax.tick_params(labelsize=7)
     ax.legend(fontsize=7)
