@@ -33,11 +33,13 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests" / "core" / "psf"))
+sys.path.insert(0, str(HERE.parent / "tests" / "_cli"))     # the test module imports its runner
 from _harness import load_test_module, record  # noqa: E402
 
 import independent_edge_generator as gen  # noqa: E402
 from napari_dslrxr.core.io import read_image  # noqa: E402
 from napari_dslrxr.core.psf.edge_fit import EdgeImage, fit_edges  # noqa: E402
+from napari_dslrxr.core.psf.edge_model import _EsfGrid  # noqa: E402
 from napari_dslrxr.core.qc.edge import edge_method_mtf, slanted_edge_mtf  # noqa: E402
 
 agreement = load_test_module("tests/_cli/test_psf_qc_agreement_realdata.py", "psf_qc_agreement")
@@ -82,10 +84,11 @@ def main() -> int:
         unc = np.sqrt(np.sum([m.mtf_uncertainty ** 2 for m in ms], axis=0)) / len(ms)
         per_edge = fit([0, 1, 2], qc_rois, [side])
         after = np.mean([as_measured(per_edge, m, f) for m in ms], axis=0)
+        residuals = [esf_residual(per_edge, m, normal(m)) for m in ms]
         before = joint_wide.presampling_mtf(f, 100.0, 100.0, normal(m0))
         band = (f >= agreement.BAND_CY_PER_PX[0]) & (f <= agreement.BAND_CY_PER_PX[1])
         curves[side] = dict(f=f, measured=measured, unc=unc, after=after, before=before,
-                            qc0=m0.mtf, raw=np.mean([per_edge.presampling_mtf(f, 100.0, 100.0, normal(m)) for m in ms], 0))
+                            qc0=m0.mtf, residuals=residuals, raw=np.mean([per_edge.presampling_mtf(f, 100.0, 100.0, normal(m)) for m in ms], 0))
         at = lambda a: np.round(np.interp(AT, f, a), 4).tolist()     # noqa: E731
         # Effects, each a change of an MTF (or of the kernel-minus-qc gap) at AT, frame 0 unless said.
         one = fit([0], qc_rois, [side])
@@ -132,7 +135,7 @@ def main() -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharex=True)
+    fig, axes = plt.subplots(3, 2, figsize=(12, 11))
     for j, (side, c) in enumerate(curves.items()):
         f, band = c["f"], (c["f"] >= agreement.BAND_CY_PER_PX[0]) & (c["f"] <= agreement.BAND_CY_PER_PX[1])
         ax = axes[0, j]
@@ -156,12 +159,37 @@ def main() -> int:
         ax.set(xlabel="frequency (cycles/pixel; dashed: 0.5 c/mm at 0.194 mm and 0.9 Nyquist)",
                ylabel="kernel - measured", ylim=(-0.08, 0.08))
         ax.legend(fontsize=7)
+        ax = axes[2, j]
+        for i, (d, r) in zip((0, 1, 2), c["residuals"]):
+            ax.plot(d, r, lw=0.8, label=f"frame {i}")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set(xlim=(-20, 20), xlabel="distance from the edge line, dark side positive (pixels)",
+               ylabel="ESF: measured - kernel (contrast units)",
+               title=f"{side} edge: ESF minus the kernel's, the same in every frame")
+        ax.legend(fontsize=7)
     fig.suptitle("NIQA edge: fitted kernel vs dslrxr qc (grey band: the issue's 0.03)", fontsize=10)
     fig.tight_layout()
     fig.savefig(FIGURE, dpi=85)
     record("psf_qc_niqa", {**out, "frequencies_cy_per_px": AT.round(4).tolist(),
                            "figure": str(FIGURE.relative_to(HERE.parent))})
     return 0
+
+
+def esf_residual(model, m, normal):
+    """qc's binned ESF minus the kernel's (the same bins, levels fitted by least squares), in
+    contrast units (positive: brighter than the kernel's ESF), against distance with the dark
+    side positive."""
+    step = 1.0 / 4
+    grid = _EsfGrid(800.0, step)
+    otf = model.presampling_mtf(grid.freq, 100.0, 100.0, normal) * np.sinc(grid.freq * step)
+    t = (np.arange(grid.n) - grid.n // 2) * step
+    d = m.esf_distance_mm                      # pitch 1: pixels
+    kernel_esf = np.interp(d, t, grid.esf(otf))
+    design = np.c_[kernel_esf, np.ones_like(kernel_esf)]
+    coef = np.linalg.lstsq(design, m.esf, rcond=None)[0]
+    rising = coef[0] > 0
+    residual = (m.esf - design @ coef) / abs(coef[0])
+    return (-d if rising else d), residual
 
 
 def _fm(m):
