@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 from ..robust import robust_line_fit, robust_sigma
 from .params import EDGE_ANGLE_RANGE_DEG
 
@@ -181,6 +181,7 @@ def _mtf_from_lsf(lsf, centre, step_mm, oversampling, half_width_px, n_fft):
 
 
 def _fft_length(half_width_px: int, oversampling: int) -> int:
+    """FFT length of the LSF: a power of two, at least 4096 and eight window widths."""
     return 1 << int(math.ceil(math.log2(max(4096, 8 * (2 * half_width_px + 4) * oversampling))))
 
 
@@ -205,6 +206,11 @@ def edge_method_mtf(presampled_mtf, frequency_cy_per_mm, pixel_pitch_mm: float, 
     pixel_pitch_mm : float
     lsf_half_width_px, oversampling : int
         The measurement's window half width and ESF bins per pixel.
+
+    Raises
+    ------
+    ParameterError
+        When the presampled MTF is 0 at f = 0.
     """
     step_mm = pixel_pitch_mm / oversampling
     n_fft = _fft_length(lsf_half_width_px, oversampling)
@@ -212,13 +218,12 @@ def edge_method_mtf(presampled_mtf, frequency_cy_per_mm, pixel_pitch_mm: float, 
     # of one bin and a box of two bins (transfer sinc(f step) sinc(2 f step)), times the step.
     # Sampled at the bin pitch over one FFT length (at least eight window widths, so the periodic
     # copies of the line spread fall far outside the window).
-    n = n_fft
-    grid = np.fft.rfftfreq(n, d=step_mm)
+    grid = np.fft.rfftfreq(n_fft, d=step_mm)
     transfer = np.asarray(presampled_mtf(grid), dtype=np.float64) * np.sinc(grid * step_mm) * np.sinc(2 * grid * step_mm)
-    lsf = np.fft.fftshift(np.fft.irfft(transfer, n))
-    freq, mtf = _mtf_from_lsf(lsf, n // 2, step_mm, oversampling, lsf_half_width_px, n_fft)
+    lsf = np.fft.fftshift(np.fft.irfft(transfer, n_fft))
+    freq, mtf = _mtf_from_lsf(lsf, n_fft // 2, step_mm, oversampling, lsf_half_width_px, n_fft)
     if mtf is None:
-        raise ValueError("the presampled MTF has no zero-frequency response")
+        raise ParameterError("edge_method_mtf: the presampled MTF has no zero-frequency response")
     return np.interp(np.abs(np.asarray(frequency_cy_per_mm, dtype=np.float64)), freq, mtf)
 
 
