@@ -147,10 +147,10 @@ def test_readout_reports_the_clipped_anatomy(docked, phantom, qtbot, wait_for_wo
     inner = cv2.erode(truth.screen_mask.astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)
     body = inner & (attenuation > 0.6)
 
-    def click_apply() -> float:
+    def click_apply(where=body) -> float:
         qtbot.mouseClick(widget._apply.native, Qt.MouseButton.LeftButton)
         qtbot.waitUntil(lambda: widget._apply.enabled and widget._readout.value.startswith("applied"), timeout=60_000)
-        shown = widget.result[body]
+        shown = widget.result[where]
         return float(np.mean((shown <= 0.5 / 255) | (shown >= 254.5 / 255)))
 
     import dataclasses
@@ -162,10 +162,17 @@ def test_readout_reports_the_clipped_anatomy(docked, phantom, qtbot, wait_for_wo
                        "contrast": dataclasses.replace(defaults.contrast, bone_contrast=3.0, halo_step=0.0,
                                                        coarse_halo_step=0.0)})
     steep = click_apply()  # share of the body clipped (independent of the core's anatomy rule)
-    reported = _clipped_percent(widget._readout.value) / 100
     assert steep > 0.05, (widget._readout.value, steep)  # the strong gains burn out part of the body
-    assert abs(reported - steep) < 0.3 * steep, (reported, steep)
+    # The widget's linear input has no flat field: the open beam keeps its vignetting, spreads
+    # as widely as the uniform body, and is not told apart from it (the safe side), so the
+    # anatomy the read-out counts is the whole screen: compare with the screen's clipped share
+    reported = _clipped_percent(widget._readout.value) / 100
+    screen = click_apply(inner)
+    assert abs(reported - screen) < 0.3 * screen, (reported, screen)
+    # the self-check says so in the read-out, as the command line and the sidecar do
+    assert "warning: display implausible" in widget._readout.value, widget._readout.value
     widget.set_params({"dynamic_range": defaults.dynamic_range, "contrast": defaults.contrast})
     click_apply()
     # the defaults keep the anatomy the core counts (direct exposure left out) within 1 %
     assert _clipped_percent(widget._readout.value) <= 1.0
+    assert "warning" not in widget._readout.value, widget._readout.value

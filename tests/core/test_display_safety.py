@@ -66,3 +66,70 @@ def test_real_cr_anatomy_is_not_burned_out(shared_data, name):
     lower[: rows[0] + 2 * (rows[-1] - rows[0]) // 3] = False  # the lower chest burned out most (10 %)
     assert _clipped(out[lower]) <= 0.01
     assert global_contrast_factor(out) > global_contrast_factor(np.clip(value, 0, 1) * field)
+
+
+def _chest_like(rng, shape=(240, 300), direct_border_px=30):
+    """A body with two lucent lung fields in a direct-exposure surround (attenuation units)."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    image = np.full(shape, 0.05, np.float32)  # direct exposure: the unattenuated level
+    body = ((xx - w / 2) / (w / 2 - direct_border_px)) ** 2 + ((yy - h / 2) / (h / 2 - direct_border_px)) ** 2 < 1
+    image[body] = 1.2 + 0.3 * np.sin(yy[body] / 7.0)  # soft tissue with rib-like texture
+    lungs = np.zeros(shape, bool)
+    for cx in (0.35 * w, 0.65 * w):
+        lungs |= ((xx - cx) / (0.1 * w)) ** 2 + ((yy - h / 2) / (0.25 * h)) ** 2 < 1
+    image[lungs] = 0.25 + 0.1 * np.sin(yy[lungs] / 5.0)  # lucent, but attenuated: not direct exposure
+    return image + rng.normal(0, 0.01, shape).astype(np.float32), body, lungs
+
+
+def test_lungs_are_anatomy_and_the_surround_is_direct_exposure(rng):
+    """Direct exposure is the beam that missed the body: outside its outline, connected to the
+    frame's edge. Lucent lungs enclosed by the body are anatomy, even near that level."""
+    from napari_dslrxr.core.display import anatomy_grid
+    from napari_dslrxr.core.stages.region import direct_exposure_mask
+
+    image, body, lungs = _chest_like(rng)
+    direct = direct_exposure_mask(image, at_foot=True)
+    assert direct is not None
+    assert np.mean(direct[~body]) > 0.95  # the surround
+    assert not direct[lungs].any()  # the lung fields, enclosed by the body
+    step, anatomy = anatomy_grid(image, None, PipelineParams())
+    assert step == 1 and anatomy[lungs].all() and anatomy[body].mean() > 0.99
+    # lungs as lucent as the open beam: still anatomy while the body encloses them (the rule is
+    # spatial, not a level alone), direct exposure once a channel joins one to the frame's edge
+    level = image.copy()
+    level[lungs] = 0.05 + rng.normal(0, 0.01, int(lungs.sum())).astype(np.float32)
+    direct = direct_exposure_mask(level, at_foot=True)
+    assert np.mean(direct[~body]) > 0.95 and not direct[lungs].any()
+    h, w = image.shape
+    level[h // 2 - 4: h // 2 + 4, : int(0.3 * w)] = 0.05  # from the left lung to the left edge
+    direct = direct_exposure_mask(level, at_foot=True)
+    left_lung = lungs & (np.arange(w) < w // 2)[None, :]
+    right_lung = lungs & ~left_lung
+    assert direct[left_lung].mean() > 0.9 and not direct[right_lung].any()
+
+
+def test_a_wide_low_mode_is_not_direct_exposure(rng):
+    """Anatomy below a dense uniform area (shielding, undetected blades) makes two histogram
+    modes; the low one spreads over the anatomy's range and is not the unattenuated beam."""
+    from napari_dslrxr.core.stages.region import direct_exposure_mask
+
+    h, w = 200, 300
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    anatomy = 0.2 + 1.8 * (0.5 + 0.5 * np.sin(xx / 9.0) * np.cos(yy / 13.0))  # spread 0.2-2.0
+    image = np.where(xx < 200, anatomy, 4.0).astype(np.float32)  # a third of the frame dense
+    image += rng.normal(0, 0.02, image.shape).astype(np.float32)
+    assert direct_exposure_mask(image) is None
+    assert direct_exposure_mask(image, at_foot=True) is None
+
+
+def test_self_check_flags_burned_out_and_inverted_anatomy(rng):
+    from napari_dslrxr.core.display import display_self_check
+
+    attenuation = rng.uniform(0, 1, 5000).astype(np.float32)
+    good = display_self_check(0.1 + 0.8 * attenuation, attenuation, 0.004)
+    assert "warning" not in good and good["polarity_evidence"] > 0.99
+    inverted = display_self_check(0.9 - 0.8 * attenuation, attenuation, 0.004)
+    assert "does not follow its attenuation" in inverted["warning"]
+    burned = display_self_check(np.zeros_like(attenuation), attenuation, 1.0)
+    assert "100.0 % of the anatomy" in burned["warning"] and burned["polarity_evidence"] == 0.0

@@ -47,10 +47,13 @@ def test_output_shows_object_truth_and_is_bone_white(frames):
 def test_flat_field_stage_matters(frames):
     # without the flat, vignetting + heel leave a large-area trend in the direct-exposure rim
     params = PipelineParams()
-    with_flat = process_frame(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark], params=params,
-                              keep_intermediates=True).intermediates["attenuation"]
-    no_flat = process_frame(frames.raw_rgb, darks=[frames.dark], params=params,
-                            keep_intermediates=True).intermediates["attenuation"]
+
+    def attenuation(**refs):  # in log units: the value-of-interest window differs with and without the flat
+        result = process_frame(frames.raw_rgb, darks=[frames.dark], params=params, keep_intermediates=True, **refs)
+        lo, hi = result.voi_window
+        return result.intermediates["attenuation"] * (hi - lo)
+
+    with_flat, no_flat = attenuation(flats=[frames.flat]), attenuation()
     # spread of the attenuation over the screen rim (uniform direct exposure in truth)
     import cv2
 

@@ -265,7 +265,7 @@ class ContrastWidget(LivePreviewMixin, Container):
         def returned(out) -> None:
             prepared, display, report = out
             self._store(layer, kind, prepared)
-            self._show(layer, prepared, display, full, started, report.get("clipped_fraction", 0.0))
+            self._show(layer, prepared, display, full, started, report)
 
         if full:
             return run_in_worker(render, self._cached(layer), np.asarray(layer.data), kind, params,
@@ -284,7 +284,7 @@ class ContrastWidget(LivePreviewMixin, Container):
             self._readout.value = self._job.status.value
 
     def _show(self, layer, prepared: PreparedInput, display: np.ndarray, full: bool, started: float,
-              clipped_fraction: float) -> None:
+              report: dict) -> None:
         scale = np.asarray(layer.scale[-2:], float) * (1.0 if full else prepared.factor)
         # Pixel centres: a preview pixel covers `factor` input pixels.
         translate = np.asarray(layer.translate[-2:], float)
@@ -298,13 +298,16 @@ class ContrastWidget(LivePreviewMixin, Container):
         show_layer(self._viewer, display, name, "image", scale=tuple(scale), translate=tuple(translate),
                    contrast_limits=(0.0, 1.0), colormap="gray")
         elapsed = time.perf_counter() - started
+        clipped_fraction = report.get("clipped_fraction", 0.0)
+        # the display's self-check (as the pipeline's sidecar and the command line say it)
+        warning = f"\nwarning: {report['warning']}" if "warning" in report else ""
         if full:
             self.result = display
             self._readout.value = (f"applied at {display.shape[1]}x{display.shape[0]} px in {elapsed:.2f} s; "
-                                   f"{clipped_text(clipped_fraction)}")
+                                   f"{clipped_text(clipped_fraction)}{warning}")
         else:
             self.preview = display
             self.last_preview_s = elapsed
             self._readout.value = (f"preview {display.shape[1]}x{display.shape[0]} px "
                                    f"(1/{prepared.factor:.2g} scale) in {elapsed * 1000:.0f} ms; "
-                                   f"{clipped_text(clipped_fraction)}")
+                                   f"{clipped_text(clipped_fraction)}{warning}")

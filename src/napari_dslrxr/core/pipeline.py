@@ -257,7 +257,7 @@ def _attenuation_stage(grey: np.ndarray, region: Region, params: PipelineParams,
     linear_sample = np.exp(-sub_att if params.output.polarity == "bone_white" else sub_att)
     results["exposure_index"] = exposure_index_record(linear_sample, sub_mask if sub_mask.any() else None,
                                                       params.exposure)
-    lo, hi = scale_to_voi_window(attenuation, sub_att[sub_mask] if sub_mask.any() else sub_att, params)
+    lo, hi = scale_to_voi_window(attenuation, mask if sub_mask.any() else None, params)
     results["voi_window"] = [lo, hi]
     return attenuation, mask, region, (lo, hi)
 
@@ -377,6 +377,8 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     t0 = clock()
     display = next(remaining)
     results["display"] = display_report
+    if "warning" in display_report:
+        results["warnings"].append(display_report["warning"])
     timings["display"] = clock() - t0
     yield 8, total
     return PipelineResult(display=display, region=region, voi_window=(lo, hi), timings_s=timings,
@@ -479,6 +481,7 @@ def run_display_pipeline(image: np.ndarray, *, params: PipelineParams | None = N
             inter[stage] = output.copy()
         timings[stage] = clock() - t0
         yield step, total
+    results["warnings"] = [results["display"]["warning"]] if "warning" in results["display"] else []
     return PipelineResult(display=output, region=region, voi_window=(lo, hi), timings_s=timings,
                           results=results, intermediates=inter, params=params)
 
