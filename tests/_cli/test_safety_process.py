@@ -5,7 +5,10 @@
 * a screen in a room: found, with its evidence score in the sidecar;
 * the display defaults: the anatomy's clipped fraction <= 1 % (sidecar and measured);
 * running without a flat or a PSF: one warning line each on stderr;
-* the automatic regularisation on the plugin's own edge sample: capped, and it says so.
+* the automatic regularisation on the plugin's own edge sample: capped, and it says so;
+* a large dense area beside the anatomy (shielding, undetected blades): the anatomy is not
+  taken for direct exposure (it was shown black, bone/lung contrast inverted, and nothing said);
+* the display's self-check: a burned-out anatomy is announced on stderr and in the sidecar.
 """
 
 from __future__ import annotations
@@ -34,14 +37,14 @@ def have_data(shared_data):
         pytest.skip(f"{shared_data / 'cr_dicom'} is absent")
 
 
-def _write_scenario(folder: Path, seed: int):
-    scenario = make_scenario(seed)
+def _write_scenario(folder: Path, seed: int, family: str = "corpus", extra_config: str = ""):
+    scenario = make_scenario(seed, family=family)
     frame = folder / f"frame{seed}.tif"
     flat = folder / f"flat{seed}.tif"
     write_tiff(frame, np.round(scenario.raw).astype(np.uint16))
     write_tiff(flat, np.round(scenario.flat).astype(np.uint16))
     config = folder / "params.toml"
-    config.write_text(f"[flatfield]\nblack_level_counts = {scenario.black_level}\n", encoding="utf-8")
+    config.write_text(f"[flatfield]\nblack_level_counts = {scenario.black_level}\n{extra_config}", encoding="utf-8")
     return scenario, frame, flat, config
 
 
@@ -122,3 +125,38 @@ def test_automatic_regularisation_on_the_edge_sample_is_capped(tmp_path):
         return float((patch.ravel() - design @ coef).std())
 
     assert plane_removed_std(out[rows, cols]) <= 2.0 * plane_removed_std(image[rows, cols])
+
+
+def _polarity_r(display: np.ndarray, scenario) -> float:
+    return float(np.corrcoef(display[scenario.anatomy], scenario.attenuation[scenario.anatomy])[0, 1])
+
+
+def test_dense_area_beside_the_anatomy_is_not_direct_exposure(have_data, tmp_path):
+    """A chest beside a dense area (a third of the field) that the histogram sees as two modes:
+    before, the anatomy was taken for the direct-exposure mode, the dense area took the
+    value-of-interest window and the anatomy came out 99 % black (r 0.07) with no warning."""
+    scenario, frame, flat, config = _write_scenario(tmp_path, 3017, family="dense_area")
+    done = _dslrxr("run", str(frame), "--flat", str(flat), "-c", str(config), "-o", str(tmp_path / "out"))
+    assert done.returncode == 0, done.stderr
+    display, results = _outputs(tmp_path / "out", frame.stem)
+    shown = scenario.anatomy & (display > 0)
+    assert clipped_fraction(display, shown) <= 0.01
+    assert _polarity_r(display, scenario) > 0.8
+    assert results["display"]["polarity_evidence"] > 0.8 and "display implausible" not in done.stderr
+
+
+def test_burned_out_anatomy_is_announced(have_data, tmp_path):
+    """Settings that burn the anatomy out (strong gains, the fit switched off): one line on
+    stderr, the same line in the sidecar's warnings, the figures in its display record."""
+    steep = ("[dynamic_range]\nmax_clipped_percent = 100.0\nlatitude = 1.0\ndetail_gain = 3.0\n"
+             "[contrast]\nbone_contrast = 3.0\nhalo_step = 0.0\ncoarse_halo_step = 0.0\n")
+    scenario, frame, flat, config = _write_scenario(tmp_path, 14, extra_config=steep)
+    done = _dslrxr("run", str(frame), "--flat", str(flat), "-c", str(config), "-o", str(tmp_path / "out"))
+    assert done.returncode == 0, done.stderr
+    display, results = _outputs(tmp_path / "out", frame.stem)
+    measured = clipped_fraction(display, scenario.anatomy)
+    assert measured > 0.05  # the independent measure: the anatomy really is burned out
+    lines = [line for line in done.stderr.splitlines() if "display implausible" in line]
+    assert len(lines) == 1 and lines[0].startswith(f"dslrxr: warning: {frame}"), done.stderr
+    assert any(w.startswith("display implausible") for w in results["warnings"])
+    assert results["display"]["clipped_fraction"] > 0.05

@@ -144,8 +144,39 @@ def _flat_pattern(rng: np.random.Generator, frame: tuple[int, int]) -> np.ndarra
     return (pattern / pattern.max()).astype(np.float32)
 
 
-def make_scenario(seed: int, frame: tuple[int, int] = FRAME_SHAPE) -> Scenario:
-    """One randomised camera frame of real anatomy (deterministic per seed)."""
+def _dense_shield(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
+    """A dense, uniform, irregular area (lead shielding, a thick cast, blades left undetected)
+    on one or two sides of the field, 25-45 % of it: a polygon with an uneven inner outline."""
+    sh, sw = shape
+    target = rng.uniform(0.25, 0.45)
+    sides = rng.choice(4, size=int(rng.integers(1, 3)), replace=False)
+    mask = np.zeros(shape, np.uint8)
+    depth = target / len(sides)
+    for side in sides:
+        n = int(rng.integers(4, 8))
+        t = np.linspace(0, 1, n)
+        # the inner outline: depth varies along the side (never a straight blade edge)
+        d = np.clip(depth * (1 + rng.uniform(-0.6, 0.6, n)), 0.05, 0.8)
+        if side in (0, 1):  # top, bottom
+            inner = np.column_stack([t * (sw - 1), (d * sh if side == 0 else (1 - d) * sh)])
+            edge = [[sw - 1, 0 if side == 0 else sh - 1], [0, 0 if side == 0 else sh - 1]]
+        else:  # left, right
+            inner = np.column_stack([(d * sw if side == 2 else (1 - d) * sw), t * (sh - 1)])
+            edge = [[0 if side == 2 else sw - 1, sh - 1], [0 if side == 2 else sw - 1, 0]]
+        poly = np.vstack([inner, edge]).round().astype(np.int32)
+        cv2.fillPoly(mask, [poly], 1)
+    return mask.astype(bool)
+
+
+def make_scenario(seed: int, frame: tuple[int, int] = FRAME_SHAPE, *, family: str = "corpus") -> Scenario:
+    """One randomised camera frame of real anatomy (deterministic per seed).
+
+    ``family="dense_area"``: the same frame with a large dense uniform area added over the
+    anatomy (:func:`_dense_shield`: shielding, a cast or undetected blades, 25-45 % of the
+    field, attenuating more than any anatomy). Its histogram then has two modes, the whole
+    anatomy and the dense area, that a direct-exposure rule may take for "direct exposure
+    and object".
+    """
     rng = np.random.default_rng([20261124, seed])
     source = load_source(SOURCES[seed % 2] if rng.random() < 0.8 else SOURCES[int(rng.integers(2))])
     layout = LAYOUTS[int(rng.integers(len(LAYOUTS)))]
@@ -166,6 +197,13 @@ def make_scenario(seed: int, frame: tuple[int, int] = FRAME_SHAPE) -> Scenario:
         band[:top] = True
         value[band] = rng.uniform(1.4, 1.8)
         anatomy_src &= ~cv2.dilate(band.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    if family == "dense_area":
+        shield_rng = np.random.default_rng([20261124, seed, 7])
+        shield = _dense_shield(shield_rng, value.shape)
+        value[shield] = shield_rng.uniform(1.3, 1.9)
+        anatomy_src &= ~cv2.dilate(shield.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    elif family != "corpus":
+        raise ValueError(f"unknown scenario family {family!r}")
     attenuation_src = (alpha * value).astype(np.float32)
 
     if layout == "whole_field":
@@ -225,7 +263,9 @@ def make_scenario(seed: int, frame: tuple[int, int] = FRAME_SHAPE) -> Scenario:
     info = {"source": source.name, "layout": layout, "tint": tint_name, "exposure": str(exposure),
             "white_dn": round(float(white_dn)), "black": black, "room": round(room, 4),
             "collimated": collimated or source.name == "RG3_UNCR", "alpha": round(float(alpha), 2)}
-    description = (f"seed {seed}: {source.name} {layout} {tint_name} {exposure} ({info['white_dn']} DN) "
+    info["family"] = family
+    kind = "" if family == "corpus" else f" {family}"
+    description = (f"seed {seed}{kind}: {source.name} {layout} {tint_name} {exposure} ({info['white_dn']} DN) "
                    f"room {info['room']}{' collimated' if collimated else ''}")
     return Scenario(seed, description, raw, flat, black, np.where(anatomy, attenuation, np.nan).astype(np.float32),
                     anatomy, screen, pattern, info)
