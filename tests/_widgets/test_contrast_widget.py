@@ -172,7 +172,19 @@ def test_readout_reports_the_clipped_anatomy(docked, phantom, qtbot, wait_for_wo
     # the self-check says so in the read-out, as the command line and the sidecar do
     assert "warning: display implausible" in widget._readout.value, widget._readout.value
     widget.set_params({"dynamic_range": defaults.dynamic_range, "contrast": defaults.contrast})
-    click_apply()
+    # the lung fields (truth geometry, 2 px inside their outline) are attenuated anatomy, not
+    # direct exposure: with the defaults they are shown, not burned black (the level-only
+    # direct-exposure rule left them out of the anatomy: 52 % of their interior was black while
+    # the read-out said 0.5 %)
+    hs, ws = truth.attenuation.shape
+    v, u = (np.mgrid[0:hs, 0:ws] / np.array([hs, ws])[:, None, None]).astype(np.float32)
+    fields = np.zeros((hs, ws), np.uint8)
+    for cx in (0.33, 0.67):  # make_object's lung fields
+        fields |= (((u - cx) / 0.11) ** 2 + ((v - 0.36) / 0.17) ** 2 < 1).astype(np.uint8)
+    lungs = cv2.warpPerspective(fields, truth.homography, (w, h), flags=cv2.INTER_NEAREST)
+    lung_interior = cv2.distanceTransform(lungs, cv2.DIST_L2, 5) > 2
+    assert lung_interior.sum() > 500
+    assert click_apply(lung_interior) <= 0.01
     # the defaults keep the anatomy the core counts (direct exposure left out) within 1 %
     assert _clipped_percent(widget._readout.value) <= 1.0
     assert "warning" not in widget._readout.value, widget._readout.value
