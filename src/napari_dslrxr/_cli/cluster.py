@@ -35,6 +35,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from ..core.errors import DslrxrError, ParameterError
+from .file_job import HEAP_ENVIRON
 
 #: Seconds to wait for an address given with ``--scheduler`` to answer.
 CONNECT_TIMEOUT_S = 20
@@ -108,11 +109,16 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
         import dask
 
         threads = str(native_threads_per_process(n_workers))
-        # read by the workers' native libraries at start (OpenCV, BLAS, OpenMP); None drops dask's
-        # trim threshold, under which each large temporary array became a fresh mapping
-        environ = {"MALLOC_TRIM_THRESHOLD_": None, "OPENCV_FOR_THREADS_NUM": threads, "OMP_NUM_THREADS": threads,
+        # read at the workers' start by glibc (the heap settings of a process running files, in
+        # place of dask's trim threshold, under which each large array is a fresh mapping) and
+        # their native libraries (OpenCV, BLAS, OpenMP)
+        environ = {**HEAP_ENVIRON, "OPENCV_FOR_THREADS_NUM": threads, "OMP_NUM_THREADS": threads,
                    "OPENBLAS_NUM_THREADS": threads, "MKL_NUM_THREADS": threads}
-        with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in environ.items()}):
+        settings = {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in environ.items()}
+        # the workers' statistical profiler samples their threads 100 times a second (about 1 % of
+        # a core each) for a dashboard page nobody reads during a batch
+        settings["distributed.worker.profile.enabled"] = False
+        with dask.config.set(settings):
             cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                                                dashboard_address=":0", silence_logs=logging.ERROR)
         try:

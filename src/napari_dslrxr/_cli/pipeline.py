@@ -9,7 +9,7 @@ from pathlib import Path
 import typer
 
 from ..core.errors import ParameterError
-from .file_job import process_one
+from .file_job import keep_freed_memory, process_one
 
 
 #: Flat references prepared in this worker process (``--jobs > 1``): each worker reads and prepares
@@ -20,6 +20,7 @@ _worker_references: dict | None = None
 def _init_worker() -> None:
     global _worker_references
     _worker_references = {}
+    keep_freed_memory()
 
 
 def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
@@ -114,6 +115,7 @@ def _run_jobs(todo: list[dict], params) -> int:
             for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
                 report(i, outcome)
     else:
+        keep_freed_memory()
         cache: dict = {}  # flats and darks are read and prepared once for the batch
         for i, job in enumerate(todo, start=1):
             report(i, process_one(job, cache))
