@@ -194,9 +194,10 @@ def test_a_worker_prepares_the_references_once_even_with_two_threads(tmp_path, s
 
 
 @pytest.mark.slow
-def test_each_worker_process_prepares_the_references_at_most_once(tmp_path, small_batch):
-    """Real worker processes: each reads the flat, the dark and the PSF model at most once,
-    however many files it runs, and the outputs are those of --jobs 1."""
+def test_worker_processes_map_the_commands_reference_and_read_the_psf_at_most_once(tmp_path, small_batch):
+    """Real worker processes: none reads the flat or the dark (the command prepared the
+    reference once and they map it), each reads the PSF model at most once however many files it
+    runs; the outputs are those of --jobs 1 and the shared reference is gone at the end."""
     # defined here so that dask sends it to the workers by value (they cannot import the tests)
     def _count_reference_reads() -> None:
         """In a worker process: count the reference frames and PSF models it reads from now on."""
@@ -223,10 +224,10 @@ def test_each_worker_process_prepares_the_references_at_most_once(tmp_path, smal
         reads = client.run(lambda: __import__("napari_dslrxr.core.files", fromlist=["x"]).__dict__.get(
             "_test_reference_reads", []))
     assert run.returncode == 0, run.stderr
-    expected = [(str(small_batch["flat"]),), (str(small_batch["dark"]),), ("psf", str(psf))]
-    for worker, worker_reads in reads.items():  # once with its first file, or never (no file)
-        assert sorted(worker_reads) == sorted(expected) or worker_reads == [], (worker, worker_reads)
+    for worker, worker_reads in reads.items():  # the PSF once with its first file, or never (no file)
+        assert worker_reads in ([("psf", str(psf))], []), (worker, worker_reads)
     assert any(reads.values())  # 8 files on 2 workers: one of them ran at least 4 with one read each
+    assert not [p.name for p in (tmp_path / "cluster").iterdir() if p.name.startswith(".")]
     assert main(["run", *map(str, inputs), *refs, "-o", str(tmp_path / "jobs1")]) == 0
     assert _images(tmp_path / "cluster") == _images(tmp_path / "jobs1")
 
@@ -312,3 +313,88 @@ def test_bad_or_unreachable_scheduler_is_one_line(tmp_path, small_batch, capsys,
     assert err.count("\n") == 0
     assert not list((tmp_path / "o").glob("*_dslrxr*"))
 
+
+
+def test_a_worker_that_cannot_see_the_shared_reference_prepares_its_own(tmp_path, small_batch, monkeypatch):
+    """A job whose shared reference folder this worker does not see (no shared file system):
+    the worker reads the reference files itself and writes the bytes of --jobs 1."""
+    from napari_dslrxr._cli import cluster as cli_cluster
+    from napari_dslrxr.core import files as core_files
+    from napari_dslrxr.core.params import PipelineParams, params_to_dict
+
+    reads = []
+    real_load = core_files.load_frames
+    monkeypatch.setattr(core_files, "load_frames", lambda paths: reads.append(list(paths)) or real_load(paths))
+    monkeypatch.setattr(cli_cluster, "_worker_references", {})
+    monkeypatch.setattr(cli_cluster, "_prepared_sets", set())
+    shot, flat, dark = small_batch["shots"][0], small_batch["flat"], small_batch["dark"]
+    (tmp_path / "w").mkdir()
+    job = {"input": str(shot), "out_dir": str(tmp_path / "w"), "params": params_to_dict(PipelineParams()),
+           "flats": [str(flat)], "darks": [str(dark)], "psf": None, "sod": None, "sdd": None, "patient": {},
+           "shared_reference": {"key": ("elsewhere",), "folder": str(tmp_path / "not-mounted-here")}}
+    name, ok, message, *_ = cli_cluster._run_on_worker(job)
+    assert ok, message
+    assert reads == [[str(flat)], [str(dark)]]
+    assert main(["run", str(shot), "--flat", str(flat), "--dark", str(dark), "-o", str(tmp_path / "seq")]) == 0
+    assert _images(tmp_path / "w") == _images(tmp_path / "seq")
+
+
+def test_the_shared_reference_is_the_one_run_file_prepares_and_is_removed(tmp_path, small_batch):
+    """The command's shared reference: the same arrays as run_file's own preparation, mapped
+    read-only; its folder is gone after the run, also after an error, and a folder left by a
+    command killed on this host is removed by the next run."""
+    import socket
+
+    import numpy as np
+
+    from napari_dslrxr._cli import cluster as cli_cluster
+    from napari_dslrxr.core.files import input_black_level, load_flat_reference, load_frames
+    from napari_dslrxr.core.params import PipelineParams, params_to_dict
+    from napari_dslrxr.core.stages.flatfield import prepare_flat_reference
+
+    out = tmp_path / "out"
+    out.mkdir()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = out / f"{cli_cluster.SHARED_REFERENCE_PREFIX}{socket.gethostname()}-{int(dead.stdout)}-0123abcd"
+    stale.mkdir()
+    (stale / "offset.npy").write_bytes(b"left by a killed run")
+    shot, flat, dark = small_batch["shots"][0], small_batch["flat"], small_batch["dark"]
+    job = {"input": str(shot), "out_dir": str(out), "params": params_to_dict(PipelineParams()),
+           "flats": [str(flat)], "darks": [str(dark)], "psf": None, "sod": None, "sdd": None, "patient": {}}
+    with cli_cluster.shared_reference([job]) as wait:
+        shared = wait()
+        assert not stale.exists()
+        mapped = load_flat_reference(shared["folder"])
+        params = PipelineParams()
+        frames = load_frames([flat])[0]
+        expected = prepare_flat_reference(frames.shape, flats=[frames], darks=load_frames([dark]),
+                                          black_level=input_black_level(shot, params), params=params.flatfield)
+        for name in ("offset", "denominator", "scale"):
+            assert np.array_equal(getattr(mapped, name), getattr(expected, name)), name
+        assert isinstance(mapped.denominator, np.memmap) and not mapped.denominator.flags.writeable
+        assert (mapped.n_flats, mapped.cleaned_pulses) == (expected.n_flats, expected.cleaned_pulses)
+        del mapped
+    assert not list(out.iterdir())
+    with pytest.raises(RuntimeError), cli_cluster.shared_reference([job]) as wait:
+        assert wait() is not None and len(list(out.iterdir())) == 1
+        raise RuntimeError("a failure while the batch runs")
+    assert not list(out.iterdir())
+
+
+@pytest.mark.slow
+def test_a_terminated_local_run_leaves_no_shared_reference_and_nothing_partial(tmp_path, slow_batch):
+    """SIGTERM to the command while its LocalCluster works: it ends as an interruption, the
+    shared reference folder is removed and every output under a final name is complete."""
+    shots, refs = slow_batch["shots"], ["--flat", str(slow_batch["flat"]), "--dark", str(slow_batch["dark"])]
+    out = tmp_path / "out"
+    run = _start_run(shots * 3, refs, out, "local")
+    deadline = time.monotonic() + 120
+    while not (out.exists() and any(p.name.startswith(".dslrxr-reference-") for p in out.iterdir())):
+        assert time.monotonic() < deadline and run.poll() is None, "no shared reference appeared"
+        time.sleep(0.05)
+    time.sleep(1.0)  # the workers into their first files
+    run.send_signal(signal.SIGTERM)
+    _, stderr = run.communicate(timeout=RUN_TIMEOUT_S)
+    assert run.returncode == 130 and "Traceback" not in stderr, stderr  # an interruption, as Ctrl-C
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".dslrxr-reference-")]
+    _assert_nothing_partial(out)

@@ -1,12 +1,14 @@
 """``dslrxr run --scheduler``: the batch as one dask.distributed task per input file.
 
 The per-file work is :func:`napari_dslrxr.core.files.run_file`, exactly as with ``--jobs``
-(same atomic writes and sidecars, so the outputs have the same bytes). Each worker process
-prepares the flat/dark reference and the PSF kernel from the reference files once, with its
-first file, and keeps them in its ``reference_cache`` for its later files, as the process pool's
-workers do. They are not prepared by the command and scattered: a 24 MP reference is 576 MB, and
-preparing it in the command then sending it to every worker left the workers idle for longer
-than each of them takes to prepare it (and the command held 3 GB).
+(same atomic writes and sidecars, so the outputs have the same bytes). The command prepares the
+flat/dark reference once, in a thread while the workers start, and writes it into a hidden folder
+of the output folder; each worker maps it read-only from there (a 24 MP reference is 576 MB:
+scattered through the scheduler it kept the workers idle for longer than preparing it takes, and
+each worker preparing its own spent that CPU time once per worker). A worker that cannot see the
+folder (no shared file system) prepares the reference from the reference files with its first
+file, as the process pool's workers do. Each worker computes the PSF kernel (small) once and keeps
+both in its ``reference_cache`` for its later files. The folder is removed when the command ends.
 
 The workers of ``--scheduler local`` share the cores out to their native libraries (OpenCV, BLAS:
 one thread each on a 2-core machine with 2 workers) and keep glibc's own heap trimming: dask's
@@ -28,6 +30,9 @@ import contextlib
 import logging
 import os
 import resource
+import shutil
+import signal
+import socket
 import sys
 import threading
 import uuid
@@ -75,9 +80,16 @@ def _reference_set(job: dict) -> tuple:
 
 
 def _run_on_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
-    """The task of one file: :func:`~.file_job.process_one` with this worker's prepared references."""
+    """The task of one file: :func:`~.file_job.process_one` with this worker's prepared references
+    (the command's shared flat reference mapped with the first file, when this worker sees it)."""
     from .file_job import process_one
 
+    shared = job.get("shared_reference")
+    if shared is not None and shared["key"] not in _worker_references:
+        from ..core.files import load_flat_reference
+
+        with contextlib.suppress(OSError, ValueError, KeyError):  # not visible here: run_file prepares it
+            _worker_references[shared["key"]] = load_flat_reference(shared["folder"])
     key = _reference_set(job)
     if key in _prepared_sets:
         return process_one(job, _worker_references)
@@ -86,6 +98,95 @@ def _run_on_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
         if outcome[1]:
             _prepared_sets.add(key)
     return outcome
+
+
+#: Name of the hidden folder of the output folder that holds a running batch's shared flat
+#: reference: this prefix, the host name and the command's process id.
+SHARED_REFERENCE_PREFIX = ".dslrxr-reference-"
+
+
+def _prepare_shared_reference(job: dict, folder: Path) -> dict | None:
+    """Prepare the flat reference of ``job`` (its reference files, parameters and its input's dark
+    offset) and write it to ``folder``. Returns what a worker needs to map it, or None when
+    there is nothing to prepare or it cannot be prepared here: the workers then prepare it from
+    the reference files themselves, and report a bad reference file with each input."""
+    from ..core.files import flat_reference_key, input_black_level, load_frames, save_flat_reference
+    from ..core.params import params_from_dict, validate_params
+    from ..core.stages.flatfield import prepare_flat_reference
+
+    if not job["flats"] and not job["darks"]:
+        return None  # the reference is the dark offset alone: nothing worth sharing
+    try:
+        params = validate_params(params_from_dict(job["params"]))
+        flats, darks = load_frames(job["flats"]), load_frames(job["darks"])
+        shapes = {frame.shape for frame in (*flats, *darks)}
+        if len(shapes) != 1:
+            return None
+        shape = shapes.pop()
+        offset = input_black_level(job["input"], params)
+        reference = prepare_flat_reference(shape, flats=flats, darks=darks, black_level=offset,
+                                           params=params.flatfield)
+        del flats, darks
+        save_flat_reference(reference, folder)
+    except Exception:  # noqa: BLE001 - the workers prepare it and report what is wrong, file by file
+        return None
+    return {"key": flat_reference_key(job["flats"], job["darks"], shape, offset, params), "folder": str(folder)}
+
+
+def _remove_stale_references(out_dir: Path) -> None:
+    """Remove shared reference folders left in ``out_dir`` by commands on this host that no
+    longer run (killed with SIGKILL, or the machine stopped)."""
+    host = socket.gethostname()
+    for folder in out_dir.glob(SHARED_REFERENCE_PREFIX + "*"):
+        parts = folder.name[len(SHARED_REFERENCE_PREFIX):].removesuffix(".partial").rsplit("-", 2)
+        if len(parts) == 3 and parts[0] == host and parts[1].isdigit() and not _process_alive(int(parts[1])):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, someone else's
+        return True
+    return True
+
+
+def _terminate_as_interrupt(signum, frame):  # noqa: ARG001 - a signal handler's signature
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def shared_reference(todo: list[dict]) -> Iterator[Callable[[], dict | None]]:
+    """Prepare the batch's flat reference (that of its first file) in a thread of this command,
+    into a hidden folder of the output folder, while the caller starts the workers. Yields a
+    function that waits for it and returns what the jobs carry to the workers (None: nothing
+    shared). The folder is removed at the end, also after an error, Ctrl-C or SIGTERM (which
+    ends the command as an interruption meanwhile); one left by a killed command on this host
+    is removed by the next run into the same folder."""
+    out_dir = Path(todo[0]["out_dir"])
+    _remove_stale_references(out_dir)
+    folder = out_dir / f"{SHARED_REFERENCE_PREFIX}{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    prepared: dict = {}
+    thread = threading.Thread(target=lambda: prepared.update(shared=_prepare_shared_reference(todo[0], folder)),
+                              name="dslrxr-shared-reference", daemon=True)
+    thread.start()
+
+    def wait() -> dict | None:
+        thread.join()
+        return prepared.get("shared")
+
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if in_main_thread else None
+    try:
+        yield wait
+    finally:
+        thread.join()  # a preparation under way finishes (seconds) so that its folder goes too
+        for path in (folder, folder.with_name(folder.name + ".partial")):
+            shutil.rmtree(path, ignore_errors=True)
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def native_threads_per_process(n_processes: int) -> int:
@@ -187,7 +288,8 @@ def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
 
     where = "a local dask cluster" if scheduler == "local" else f"the dask scheduler at {scheduler}"
     finished = 0
-    with connect(scheduler, n_workers) as client:
+    # the reference is prepared while the workers start; the tasks are submitted when it is ready
+    with shared_reference(todo) as wait_for_reference, connect(scheduler, n_workers) as client:
         n = len(client.scheduler_info().get("workers", {}))
         print(f"dslrxr: {len(todo)} file(s) on {where} ({n} worker(s) now)", file=sys.stderr)
         link = _dashboard(client)
@@ -195,7 +297,8 @@ def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
               "dslrxr: no dask dashboard (install bokeh>=3.1 for one)", file=sys.stderr)
         try:
             run_id = uuid.uuid4().hex[:8]
-            futures = [client.submit(_run_on_worker, job, pure=False,
+            shared = wait_for_reference()
+            futures = [client.submit(_run_on_worker, {**job, "shared_reference": shared}, pure=False,
                                      key=f"dslrxr-run-{run_id}-{i}-{Path(job['input']).name}")
                        for i, job in enumerate(todo)]
             by_key = {f.key: job for f, job in zip(futures, todo, strict=True)}

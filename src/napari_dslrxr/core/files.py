@@ -187,6 +187,49 @@ def flat_reference_key(flat_paths: Sequence[str | os.PathLike], dark_paths: Sequ
             repr(params.flatfield))
 
 
+def save_flat_reference(reference: FlatReference, folder: str | os.PathLike) -> Path:
+    """Write a prepared reference to the new folder ``folder`` (one ``.npy`` per array and its
+    counts), so other processes can map it with :func:`load_flat_reference` instead of preparing
+    it again. The folder appears complete or not at all (written beside it, then renamed)."""
+    import shutil
+
+    folder = Path(folder)
+    partial_folder = folder.with_name(folder.name + ".partial")
+    partial_folder.mkdir()
+    try:
+        arrays = {"offset": reference.offset, "scale": reference.scale}
+        if reference.denominator is not None:
+            arrays["denominator"] = reference.denominator
+        for name, array in arrays.items():
+            np.save(partial_folder / f"{name}.npy", np.ascontiguousarray(array), allow_pickle=False)
+        counts = {"n_flats": reference.n_flats, "cleaned_pulses": reference.cleaned_pulses}
+        (partial_folder / "counts.json").write_text(json.dumps(counts), encoding="utf-8")
+        os.replace(partial_folder, folder)
+    except BaseException:
+        shutil.rmtree(partial_folder, ignore_errors=True)
+        raise
+    return folder
+
+
+def load_flat_reference(folder: str | os.PathLike) -> FlatReference:
+    """A reference written by :func:`save_flat_reference`, its arrays memory-mapped read-only
+    (processes on one machine share the pages; nothing is copied).
+
+    Raises
+    ------
+    OSError, ValueError
+        The folder is missing (not visible from this machine) or not a reference.
+    """
+    folder = Path(folder)
+    counts = json.loads((folder / "counts.json").read_text(encoding="utf-8"))
+    denominator = folder / "denominator.npy"
+    return FlatReference(offset=np.load(folder / "offset.npy", mmap_mode="r", allow_pickle=False),
+                         denominator=(np.load(denominator, mmap_mode="r", allow_pickle=False)
+                                      if denominator.exists() else None),
+                         scale=np.load(folder / "scale.npy", allow_pickle=False),
+                         n_flats=int(counts["n_flats"]), cleaned_pulses=int(counts["cleaned_pulses"]))
+
+
 def psf_kernel_key(psf_path: str | os.PathLike, source_to_object_mm: float, source_to_detector_mm: float) -> tuple:
     """Key of a PSF kernel in a ``reference_cache`` (see :func:`run_file`)."""
     return ("psf", str(psf_path), float(source_to_object_mm), float(source_to_detector_mm))
