@@ -11,9 +11,11 @@ file, as the process pool's workers do. Each worker computes the PSF kernel (sma
 both in its ``reference_cache`` for its later files. The folder is removed when the command ends.
 
 The workers of ``--scheduler local`` share the cores out to their native libraries (OpenCV, BLAS:
-one thread each on a 2-core machine with 2 workers) and keep glibc's own heap trimming: dask's
-default ``MALLOC_TRIM_THRESHOLD_`` for worker processes made every large temporary array of the
-pipeline a fresh mapping (about 9 times the page faults of one process).
+one thread each on a 2-core machine with 2 workers), run without dask's statistical profiler and
+get the heap settings of every process that runs files (:data:`~.file_job.HEAP_ENVIRON`, in place
+of dask's ``MALLOC_TRIM_THRESHOLD_``, under which every large temporary array of the pipeline was
+a fresh mapping: about 9 times the page faults of one process). Workers started otherwise
+(``dask worker``, dask-jobqueue) keep their own settings.
 
 dask reschedules the task of a worker that dies (a file is written under a temporary name and
 renamed, so a killed worker leaves no partial output); a task that kills

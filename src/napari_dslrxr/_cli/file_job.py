@@ -13,7 +13,7 @@ from ..core.errors import DslrxrError
 
 #: glibc's heap settings for a process that runs files. By default an array above 32 MB (every
 #: 24 MP temporary of the pipeline) is a fresh memory mapping, which the kernel zeroes page by
-#: page on first touch and unmaps when freed: about 15 % of a file's CPU time went to those page
+#: page on first touch and unmaps when freed: 15-25 % of a run's CPU time went to those page
 #: faults. Served from the heap, and the freed memory kept (not trimmed) for the next array, a
 #: file after the first faults almost no page in. One arena: a dask worker runs its tasks in a
 #: thread, and a thread's own arena maps every large array afresh whatever the threshold.
