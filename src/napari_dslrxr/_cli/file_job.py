@@ -3,11 +3,13 @@ process pool, dask.distributed workers) hands to :func:`~napari_dslrxr.core.file
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import platform
 import sys
 import time
+from collections.abc import Iterator
 
 from ..core.errors import DslrxrError
 
@@ -20,22 +22,53 @@ from ..core.errors import DslrxrError
 HEAP_THRESHOLD_BYTES = 2**31 - 1  # the largest value mallopt takes; larger arrays are mapped as before
 HEAP_ENVIRON = {"MALLOC_MMAP_THRESHOLD_": str(HEAP_THRESHOLD_BYTES),
                 "MALLOC_TRIM_THRESHOLD_": str(HEAP_THRESHOLD_BYTES), "MALLOC_ARENA_MAX": "1"}
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8  # mallopt's parameter numbers (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # mallopt's parameter numbers (malloc.h)
 
 
-def keep_freed_memory() -> bool:
-    """Give this process the heap settings of :data:`HEAP_ENVIRON` (glibc only; elsewhere
-    nothing changes). Returns whether they were applied. The process holds its peak memory
-    until it exits: for processes that only run files (``dslrxr run`` and its workers)."""
+def _glibc():
+    """The C library, when it is glibc (whose heap settings these are); else None."""
     if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
-        return False
+        return None
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-        return all(libc.mallopt(param, value) == 1 for param, value in (
-            (_M_MMAP_THRESHOLD, HEAP_THRESHOLD_BYTES), (_M_TRIM_THRESHOLD, HEAP_THRESHOLD_BYTES), (_M_ARENA_MAX, 1)))
+        libc.malloc_trim.argtypes = [ctypes.c_size_t]
     except (OSError, AttributeError):
-        return False
+        return None
+    return libc
+
+
+def keep_freed_memory() -> bool:
+    """Give this process the heap thresholds of :data:`HEAP_ENVIRON` (glibc only; elsewhere
+    nothing changes); returns whether they were applied. Large arrays allocated from then on come
+    from the heap, and freed memory stays in the process: for a process that runs files (a pool
+    worker) until it ends, or within :func:`freed_memory_kept`. Its main thread uses the main
+    arena, so the arena limit (for threads that start later) is left alone."""
+    libc = _glibc()
+    return libc is not None and all(libc.mallopt(param, HEAP_THRESHOLD_BYTES) == 1
+                                    for param in (_M_MMAP_THRESHOLD, _M_TRIM_THRESHOLD))
+
+
+#: glibc's largest dynamic mapping threshold (32 MiB on 64-bit) and the trim threshold it pairs with
+#: it, set back after :func:`freed_memory_kept` (a dynamic threshold, once fixed, cannot be restored).
+_DEFAULT_MMAP_THRESHOLD_BYTES = 32 * 2**20
+_DEFAULT_TRIM_THRESHOLD_BYTES = 2 * _DEFAULT_MMAP_THRESHOLD_BYTES
+
+
+@contextlib.contextmanager
+def freed_memory_kept() -> Iterator[bool]:
+    """:func:`keep_freed_memory` for a batch run in this process (``--jobs 1``, which may be a
+    longer-lived process calling the command): afterwards the thresholds are set back to glibc's
+    usual large-array values and the freed memory is returned to the system."""
+    applied = keep_freed_memory()
+    try:
+        yield applied
+    finally:
+        if applied:
+            libc = _glibc()
+            libc.mallopt(_M_MMAP_THRESHOLD, _DEFAULT_MMAP_THRESHOLD_BYTES)
+            libc.mallopt(_M_TRIM_THRESHOLD, _DEFAULT_TRIM_THRESHOLD_BYTES)
+            libc.malloc_trim(0)
 
 
 def sidecar_warnings(written: list) -> list[str]:

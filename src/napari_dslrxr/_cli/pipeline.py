@@ -9,7 +9,7 @@ from pathlib import Path
 import typer
 
 from ..core.errors import ParameterError
-from .file_job import keep_freed_memory, process_one
+from .file_job import freed_memory_kept, keep_freed_memory, process_one
 
 
 #: Flat references prepared in this worker process (``--jobs > 1``): each worker reads and prepares
@@ -115,10 +115,10 @@ def _run_jobs(todo: list[dict], params) -> int:
             for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
                 report(i, outcome)
     else:
-        keep_freed_memory()
         cache: dict = {}  # flats and darks are read and prepared once for the batch
-        for i, job in enumerate(todo, start=1):
-            report(i, process_one(job, cache))
+        with freed_memory_kept():
+            for i, job in enumerate(todo, start=1):
+                report(i, process_one(job, cache))
     return failed
 
 
