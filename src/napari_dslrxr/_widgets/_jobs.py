@@ -26,6 +26,12 @@ from ..core.errors import DslrxrError, WorkCancelled
 
 _LOG = logging.getLogger(__name__)
 
+#: Delay between the steps of a result shown over several event-loop turns. A zero (or 1 ms)
+#: timer is served before the timers that fall due during the canvas redraw the step before
+#: posted, so that redraw and the next step ran back to back as one freeze; 20 ms lets the
+#: redraw, then the other timers and input, run first (six steps: about 0.1 s later in all).
+SHOW_STEP_DELAY_MS = 20
+
 
 # --------------------------------------------------------------------------- notifications
 
@@ -259,7 +265,11 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
         What runs, for the progress display and messages.
     on_returned : callable
         Called on the GUI thread with the result; exceptions in it become notifications.
-        Never called for a cancelled job.
+        Never called for a cancelled job. When it is a generator function, each ``yield``
+        hands the event loop back (the viewer draws and takes input) before the next step
+        runs: a result made of several new layers is shown one layer per event-loop turn
+        (napari builds each new layer's controls and visual on the GUI thread, 0.1-0.4 s each
+        under software GL), and the job counts as finished after the last step.
     on_finished : callable, optional
         Called on the GUI thread once the job is over for the widget: after success, error,
         or at once when Cancel is pressed (e.g. to re-enable a button).
@@ -307,6 +317,9 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
     elif progress_bar:
         pbar = progress(total=0, desc=desc)
     outcome = {"text": f"{desc}: done"}
+    # The steps of a result shown over several event-loop turns, and whether the thread's end
+    # came while they ran (the job finishes after the last step).
+    showing: dict[str, Any] = {"steps": None, "finish_after": False}
 
     def _returned(result: Any) -> None:
         worker.dslrxr_returned_at = time.perf_counter()  # the result reaches the GUI thread
@@ -316,9 +329,33 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
         if started:
             outcome["text"] = f"{desc}: done in {time.perf_counter() - started:.1f} s"
         with reported_errors(desc):
-            on_returned(result)
+            shown = on_returned(result)
+            if isinstance(shown, Iterator):
+                showing["steps"] = shown
+                _next_step()
+
+    def _next_step() -> None:
+        from qtpy.QtCore import QTimer
+
+        steps = showing["steps"]
+        try:
+            next(steps)
+        except StopIteration:
+            steps = None
+        except Exception as exc:  # noqa: BLE001 - the viewer must survive any failure
+            notify_error(exc, context=desc)
+            steps = None
+        if steps is not None:
+            QTimer.singleShot(SHOW_STEP_DELAY_MS, _next_step)
+            return
+        showing["steps"] = None
+        if showing["finish_after"]:
+            _finished()
 
     def _finished() -> None:
+        if showing["steps"] is not None:
+            showing["finish_after"] = True  # finish once the result is shown
+            return
         if pbar is not None:
             pbar.close()
         if panel is not None:

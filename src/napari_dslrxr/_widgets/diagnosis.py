@@ -15,6 +15,7 @@ read-out. "Write report" writes ``report.html`` and the JSON/TIFF files with
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -181,7 +182,7 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         self._run.enabled = False
         self._readout.value = "diagnosing..."
         return run_in_worker(diagnose_for_display, scene, recording, options, progress=self._job.callback,
-                             desc="mismatch diagnosis", on_returned=lambda out: self._show(layer, *out),
+                             desc="mismatch diagnosis", on_returned=lambda out: self._show_steps(layer, *out),
                              on_finished=self._done, panel=self._job, readout=self._readout)
 
     def cancel(self) -> None:
@@ -189,6 +190,14 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         self._job.cancel()
 
     def _show(self, layer, result: DiagnosisResult, binned: dict[str, np.ndarray] | None = None) -> None:
+        """Show a diagnosis result at once."""
+        for _ in self._show_steps(layer, result, binned):
+            pass
+
+    def _show_steps(self, layer, result: DiagnosisResult,
+                    binned: dict[str, np.ndarray] | None = None) -> Iterator[None]:
+        """Show a diagnosis result one layer per event-loop turn (each new layer costs napari
+        0.1-0.4 s on the GUI thread; six at once froze the viewer for over a second)."""
         self.result = result
         binned = binned if binned is not None else binned_residual_maps(result)
         scale = np.asarray(layer.scale[-2:], float)
@@ -206,16 +215,20 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         for z, stage, shift in ((result.z_base, "base model", 0.0 * beside), (result.z_final, "final model", beside)):
             show_layer(self._viewer, z, f"residual z ({stage})", "image", colormap="bwr", contrast_limits=Z_LIMITS,
                        scale=z_scale, translate=tuple(np.asarray(z_translate) + shift), visible=False)
+            yield
             show_layer(self._viewer, binned[stage], f"residual z {block}x{block} ({stage})", "image", colormap="bwr",
                        contrast_limits=BINNED_Z_LIMITS, scale=binned_scale,
                        translate=tuple(np.asarray(binned_translate) + shift), visible=True)
+            yield
         top_left = np.asarray(layer.translate[-2:], float) - scale * 0.5
         added = ", ".join(term.effect.replace("_", " ") for term in result.added) or "nothing found"
         self._show_map_labels(np.array([top_left, top_left + beside]), width,
                               ["before (scene as given)", f"after (+ {added})"])
+        yield
         rectangles = [np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float) - 0.5
                       for r0, c0, r1, c1 in result.regions]
         self._show_regions(rectangles, layer)
+        yield
         self._readout.value = summary_text(result)
         self._write.enabled = True
 

@@ -10,6 +10,7 @@ the estimated pulse rate and the estimated Poisson gain are shown under the butt
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -124,7 +125,7 @@ class ImpulseWidget(Container):
         self._readout.value = "running..."
         return run_in_worker(clean_for_display, image, params, space, progress=self._job.callback,
                              desc="impulse removal",
-                             on_returned=lambda out: self._show(layer, *out), on_finished=self._done,
+                             on_returned=lambda out: self._show_steps(layer, *out), on_finished=self._done,
                              panel=self._job, readout=self._readout)
 
     def _done(self) -> None:
@@ -132,13 +133,17 @@ class ImpulseWidget(Container):
         if self._readout.value == "running...":
             self._readout.value = self._job.status.value
 
-    def _show(self, layer: napari.layers.Image, result: ImpulseResult, limits: tuple[float, float],
-              labels: dict[str, np.ndarray], summary: str) -> None:
+    def _show_steps(self, layer: napari.layers.Image, result: ImpulseResult, limits: tuple[float, float],
+                    labels: dict[str, np.ndarray], summary: str) -> Iterator[None]:
+        """Show the result one layer per event-loop turn (each new layer costs napari
+        0.1-0.2 s on the GUI thread)."""
         self.result = result
         geometry = same_geometry(layer)
         show_layer(self._viewer, result.image, f"{layer.name} cleaned", "image",
                    rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, **geometry)
         for name, label_image in labels.items():
+            yield
             show_layer(self._viewer, label_image, f"{layer.name} pulses {name}", "labels",
                        opacity=0.8, **geometry)
+        yield
         self._readout.value = summary

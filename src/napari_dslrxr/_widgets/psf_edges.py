@@ -13,6 +13,7 @@ and the blur kernel at the chosen image's geometry as the image layer ``"PSF ker
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -281,12 +282,15 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
             self._readout.value = self._job.status.value
 
     def _show(self, model: PSFModel, kernel: np.ndarray, summary: str, plot: tuple | None,
-              geometry_mm: tuple[float, float]) -> None:
+              geometry_mm: tuple[float, float]) -> Iterator[None]:
+        """The read-out and plot, then (next event-loop turn: the widget redraws first) the
+        kernel layer."""
         self.model = model
         self._save.enabled = True
         self._readout.value = summary
         if plot is not None:
             self._plot.show(*plot)
+        yield
         self.show_kernel(model, kernel, geometry_mm)
 
     def show_kernel(self, model: PSFModel, kernel: np.ndarray | None = None,

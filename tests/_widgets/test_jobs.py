@@ -1,0 +1,51 @@
+"""A job's result shown over several event-loop turns (one new layer per turn)."""
+
+from __future__ import annotations
+
+import pytest
+
+from napari_dslrxr._widgets._jobs import run_in_worker
+
+pytestmark = pytest.mark.gui
+
+
+def test_result_steps_run_one_per_event_loop_turn_and_the_job_finishes_after_the_last(qtbot, wait_for_worker):
+    from qtpy.QtCore import QTimer
+
+    ticks = [0]
+    heartbeat = QTimer()
+    heartbeat.setInterval(2)
+    heartbeat.timeout.connect(lambda: ticks.__setitem__(0, ticks[0] + 1))
+    heartbeat.start()
+    seen: list[tuple] = []  # (what, heartbeat ticks so far, job finished yet)
+    worker = None
+
+    def show(value):
+        for step in range(3):
+            if step:
+                yield
+            seen.append((f"step {step}: {value}", ticks[0], worker.dslrxr_finished))
+
+    worker = run_in_worker(lambda: 7, desc="stepwise", progress_bar=False, on_returned=show,
+                           on_finished=lambda: seen.append(("finished", ticks[0], worker.dslrxr_finished)))
+    wait_for_worker(worker)
+    heartbeat.stop()
+    assert [what for what, _, _ in seen] == ["step 0: 7", "step 1: 7", "step 2: 7", "finished"]
+    assert not any(done for _, _, done in seen), "the job counted as finished before its result was shown"
+    step_ticks = [t for _, t, _ in seen[:3]]
+    # Other timers ran between the steps: the event loop was not held through them all.
+    assert step_ticks[0] < step_ticks[1] < step_ticks[2]
+
+
+def test_a_failing_step_is_a_notification_and_the_job_still_finishes(qtbot, wait_for_worker, errors_shown):
+    finished = []
+
+    def show(_value):
+        yield
+        raise ValueError("bad step")
+
+    worker = run_in_worker(lambda: 1, desc="stepwise", progress_bar=False, on_returned=show,
+                           on_finished=lambda: finished.append(True))
+    wait_for_worker(worker)
+    assert finished == [True]
+    assert len(errors_shown) == 1 and "stepwise" in errors_shown[0] and "bad step" in errors_shown[0]
