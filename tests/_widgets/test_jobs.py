@@ -49,3 +49,31 @@ def test_a_failing_step_is_a_notification_and_the_job_still_finishes(qtbot, wait
     wait_for_worker(worker)
     assert finished == [True]
     assert len(errors_shown) == 1 and "stepwise" in errors_shown[0] and "bad step" in errors_shown[0]
+
+
+def test_the_progress_bar_moves_with_a_deferred_repaint_not_an_immediate_one(qtbot):
+    from qtpy.QtCore import QEvent, QObject
+
+    from napari_dslrxr._widgets._jobs import JobPanel
+
+    panel = JobPanel()
+    bar = panel.bar.native
+    qtbot.addWidget(panel.row.native)
+    panel.row.native.show()
+    qtbot.waitExposed(panel.row.native)
+    paints = []
+
+    class CountPaints(QObject):
+        def eventFilter(self, watched, event):  # noqa: N802 - Qt's spelling
+            if event.type() == QEvent.Type.Paint:
+                paints.append(event)
+            return False
+
+    counter = CountPaints()
+    bar.installEventFilter(counter)
+    for permille in (100, 550, 1000, 0):
+        paints.clear()
+        panel._set_bar(permille)
+        assert panel.bar.value == permille and bar.value() == permille
+        assert not paints, "the bar repainted synchronously (and with it the whole window)"
+        qtbot.waitUntil(lambda: bool(paints), timeout=2_000)  # repainted at the next turn
