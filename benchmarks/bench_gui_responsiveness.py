@@ -221,13 +221,13 @@ def measure(where: Path | None = None) -> dict:
                 deconvolution = w["Deconvolution"]
                 deconvolution._image.value = layers["edge SOD 900 mm"]
                 deconvolution._kernel_layer.value = layers["PSF kernel"]
+            if widget_name == "Detector quality":  # drawn before the click, not during the job
+                qc_rois.add_rectangles([click_suite.rectangle(96, 160, 416, 352)])
             # The previous result's last redraws are over before the next click: its gaps
             # belong to its own "result" phase, not to the next job.
             plugin.qtbot.wait(int(SETTLE_S * 1000))
             if tracer is not None:
                 tracer.mark(f"{widget_name}: {text}")
-            if widget_name == "Detector quality":
-                qc_rois.add_rectangles([click_suite.rectangle(96, 160, 416, 352)])
             plugin.click(widget_name, text, timeout_ms=120_000)
             if widget_name == "Detector quality":
                 qc_rois.data = []
