@@ -90,7 +90,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
                    polarity: int, valid: np.ndarray | None = None, circular: bool = False,
                    value_range: float | None = None, residual_weight: np.ndarray | None = None,
                    in_place: bool = False, fit_region: np.ndarray | None = None,
-                   steps: Steps | None = None):
+                    steps: Steps | None = None,
+                    channels: np.ndarray | None = None):
     """Detect and replace pulses in one float32 channel (``in_place``: in ``x`` itself).
 
     ``fit_region`` (bool, optional): the noise model is fitted on these pixels only (and
@@ -103,6 +104,9 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     Only the first pass looks at the whole image. A later pass can only find pulses where
     the previous one changed a detection median, so it re-tests just the pixels within the
     detection window of the pixels replaced before (the same result as a full pass).
+
+    ``channels`` (V of the colour path): the (H, W, 3) image ``x`` is the maximum of; the
+    noise model is widened to the tail of that maximum (:func:`_match_channel_tail`).
 
     ``steps``: advanced by :func:`channel_steps` ``(passes)`` in all (the fit, then each
     pass's steps; passes not needed are skipped at once), so a caller's progress callback
@@ -146,6 +150,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
                                                             residual_weight)
     if polarity < 0:
         model.polarity, model.pulse_density = -1, 1.0 / value_range
+    if channels is not None and photon_counting:
+        _match_channel_tail(model, channels, pick, d_fit, m_fit, params.window_px)
     del d_fit, m_fit, pick
     if photon_counting:
         model.min_contrast = float(params.min_contrast)
@@ -230,6 +236,43 @@ def _flat_area_sample(components: list[_Component], valid: np.ndarray | None, co
         slope = slope / scale
         busy = busy / scale
     return candidates[(slope <= np.median(slope)) & (busy <= _BUSY_SAMPLE_FACTOR * np.median(busy))]
+
+
+#: Variance of the Gaussian whose tail matches that of the residual of V = max(R, G, B) where
+#: the three channels are equal (grey), relative to one channel's variance. The maximum of
+#: three equal noisy channels has a narrow body (0.45-0.55 of one channel's variance: what
+#: V's fit sees) but its upper tail is that of a single channel, three times as likely:
+#: P(V - mean > u) ~ 3 Q(u/s + 0.85) (s one channel's sigma, 0.85 s the mean excess of the
+#: maximum), which a Gaussian of sigma 0.84-0.86 s matches at u = 3-4 s.
+_MAX_TAIL_VARIANCE = 0.75
+
+
+def _match_channel_tail(model: _NoiseModel, channels: np.ndarray, pick: np.ndarray, d_v: np.ndarray,
+                        m_v: np.ndarray, window_px: int) -> None:
+    """Widen V's fitted noise to the tail of a maximum of channels (in place).
+
+    On the EM sample, the residual of the brightest channel (by its detection median) to its
+    own median is compared with V's (robust sigmas, relative to the fitted noise): their
+    variance ratio is about 1 where one channel dominates (a tinted screen) and 1.8-2.2 on a
+    grey frame. Where ``_MAX_TAIL_VARIANCE`` times it exceeds 1, ``a``, ``b`` and the floor
+    are scaled by that, so that V's bright noise tail (false pulses on grey frames) is
+    tested against a Gaussian as wide; ``count_variance_scale`` keeps the channel's count
+    variance (the reported gain) apart from that widening.
+    """
+    from ...robust import robust_sigma
+
+    rows, cols = np.divmod(pick, channels.shape[1])
+    residuals = [_exact_residual(channels[..., c], rows, cols, window_px, False, None)
+                 for c in range(channels.shape[2])]
+    top = np.argmax(np.stack([med for _, med in residuals]), axis=0)
+    d_top = np.stack([d for d, _ in residuals])[top, np.arange(pick.size)]
+    sigma = np.sqrt(model.variance(m_v))
+    ratio = (robust_sigma(d_top / sigma, center=0.0) / max(robust_sigma(d_v / sigma, center=0.0), 1e-12)) ** 2
+    scale = max(_MAX_TAIL_VARIANCE * ratio, 1.0)
+    model.a *= scale
+    model.b *= scale
+    model.var_floor *= scale
+    model.count_variance_scale = ratio / scale
 
 
 def _exact_residual(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int,

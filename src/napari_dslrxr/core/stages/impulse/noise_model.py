@@ -29,6 +29,10 @@ class _NoiseModel:
     min_contrast: float = 0.0
     #: Photon-counting channels: median level of the darkest fit samples (nan if unknown).
     dark_level: float = float("nan")
+    #: Count variance over the variance ``a`` and ``b`` describe: 1, except for V of
+    #: near-grey colour frames (``detection._match_channel_tail``), whose residual is a
+    #: maximum of channels and narrower than one channel's.
+    count_variance_scale: float = 1.0
 
     def variance(self, m: np.ndarray) -> np.ndarray:
         return np.maximum(self.a * m + self.b, self.var_floor)
@@ -136,7 +140,7 @@ def _dark_end(d: np.ndarray, m: np.ndarray) -> tuple[float, float]:
 def _gain(model: _NoiseModel | None, params: ImpulseParams) -> float:
     if model is None or model.a <= 0:
         return float("nan")
-    return model.a / MEDIAN_RESIDUAL_VARIANCE_FACTOR[params.window_px]
+    return model.a * model.count_variance_scale / MEDIAN_RESIDUAL_VARIANCE_FACTOR[params.window_px]
 
 
 def _count_variance(values: np.ndarray, model: "_NoiseModel | None") -> np.ndarray:
