@@ -251,8 +251,9 @@ def _match_channel_tail(model: _NoiseModel, channels: np.ndarray, pick: np.ndarr
                         m_v: np.ndarray, window_px: int) -> None:
     """Widen V's fitted noise to the tail of a maximum of channels (in place).
 
-    On the EM sample, the residual of the brightest channel (by its detection median) to its
-    own median is compared with V's (robust sigmas, relative to the fitted noise): their
+    On the brighter half of the EM sample, the residual of the brightest channel (by its
+    detection median) to its own median is compared with V's (robust sigmas, relative to
+    the fitted noise): their
     variance ratio is about 1 where one channel dominates (a tinted screen) and 1.8-2.2 on a
     grey frame. Where ``_MAX_TAIL_VARIANCE`` times it exceeds 1, ``a``, ``b`` and the floor
     are scaled by that, so that V's bright noise tail (false pulses on grey frames) is
@@ -266,8 +267,12 @@ def _match_channel_tail(model: _NoiseModel, channels: np.ndarray, pick: np.ndarr
                  for c in range(channels.shape[2])]
     top = np.argmax(np.stack([med for _, med in residuals]), axis=0)
     d_top = np.stack([d for d, _ in residuals])[top, np.arange(pick.size)]
-    sigma = np.sqrt(model.variance(m_v))
-    ratio = (robust_sigma(d_top / sigma, center=0.0) / max(robust_sigma(d_v / sigma, center=0.0), 1e-12)) ** 2
+    # The brighter half of the sample: a dark surround (read noise of three channels over a
+    # black level, a maximum even on a tinted frame) must not set a screen's ratio.
+    bright = m_v >= np.median(m_v)
+    sigma = np.sqrt(model.variance(m_v[bright]))
+    ratio = (robust_sigma(d_top[bright] / sigma, center=0.0)
+             / max(robust_sigma(d_v[bright] / sigma, center=0.0), 1e-12)) ** 2
     scale = max(_MAX_TAIL_VARIANCE * ratio, 1.0)
     model.a *= scale
     model.b *= scale
