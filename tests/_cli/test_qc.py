@@ -204,3 +204,26 @@ def test_edge_line_is_reported_in_frame_pixels(frames, tmp_path):
     assert col_at_centre == pytest.approx(300, abs=1.0)
     r0, c0, r1, c1 = edges[1]["edge_line_rc"]
     assert r0 + (300 - c0) * (r1 - r0) / (c1 - c0) == pytest.approx(300, abs=1.0)
+
+
+def test_qc_refuses_a_region_with_a_corner_instead_of_reporting_its_mtf(frames, tmp_path):
+    """A whole frame with the plate's corner in it (two edges) has no single edge line: a line
+    through some rows' gradients gave a 'MTF' of 1.4 on the real NIQA frame. One line, exit 2,
+    nothing written; a region around one of the two edges is measured."""
+    _, paths = frames
+    rng = np.random.default_rng(5)
+    vertical = dt.edge_frame(DET, SHAPE, rng, angle_deg=2.2, vertical_edge=True)
+    horizontal = dt.edge_frame(DET, SHAPE, rng, angle_deg=2.2, vertical_edge=False)
+    corner = write_tiff(tmp_path / "corner.tif", np.minimum(vertical, horizontal).astype(np.float32))
+    base = ["qc", "--flat", paths["flat"][0], "--edge", corner, "--pixel-pitch-mm", DET.pitch_mm,
+            "--air-kerma-ugy", 5.0]
+    proc = _dslrxr(*base, "-o", tmp_path / "whole")
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "corner.tif: no single straight edge across the region" in lines[0]
+    assert not (tmp_path / "whole").exists() or not any((tmp_path / "whole").iterdir())
+    h, w = SHAPE
+    # the lower rows, where only the near-vertical edge crosses the frame
+    proc = _dslrxr(*base, "--edge-roi", f"{h // 2 + 40},0,{h},{w}", "-o", tmp_path / "one_edge")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "one_edge" / "qc.json").read_text())["edges"][0]["direction"] == "horizontal"
