@@ -86,6 +86,9 @@ class Problem:
         self.noise: noise_mod.NoiseModel | None = None
         self.wsqrt = np.ones_like(y)
         self.n = int(mask.sum())
+        # the expected image at the last point evaluated: the Jacobian at the point the
+        # optimiser just evaluated needs it again (for the gain column)
+        self._last_expected: tuple | None = None
 
     def set_noise(self, noise: noise_mod.NoiseModel, expected: np.ndarray, offset: float) -> None:
         self.noise = noise
@@ -104,16 +107,24 @@ class Problem:
             u = self.noise.whiten(u)
         return u[m]
 
-    def whitened(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+    def expected(self, layout: Layout, x: np.ndarray) -> np.ndarray:
+        """The model's expected image at ``x`` (read-only; kept for the next call at the same ``x``)."""
+        key = x.tobytes()
+        if self._last_expected is not None and self._last_expected[0] is layout and self._last_expected[1] == key:
+            return self._last_expected[2]
         mu = self.model.expected(*layout.unpack(x))
-        return self.whiten_field((self.y - mu) * self.wsqrt, sel)
+        self._last_expected = (layout, key, mu)
+        return mu
+
+    def whitened(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
+        return self.whiten_field((self.y - self.expected(layout, x)) * self.wsqrt, sel)
 
     def jacobian(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None,
                  f0: np.ndarray | None = None) -> np.ndarray:
         """Jacobian of the whitened residual: analytic for offset and gain, else forward differences.
         ``f0``: the whitened residual at ``x``, if already computed."""
-        base, terms = layout.unpack(x)
-        mu = self.model.expected(base, terms)
+        base = layout.unpack(x)[0]
+        mu = self.expected(layout, x)
         if f0 is None:
             f0 = self.whiten_field((self.y - mu) * self.wsqrt, sel)
         jac = np.empty((f0.size, x.size))
