@@ -159,7 +159,7 @@ def _esf_outliers(values, dist_px, sel, centres, esf, outlier_sigma):
     return out
 
 
-def _mtf_from_esf(esf, step_mm, pitch_mm, oversampling, half_width_px, n_fft):
+def _mtf_from_esf(esf, step_mm, oversampling, half_width_px, n_fft):
     """LSF (central difference), Hann window, FFT, with the binning and difference corrected."""
     lsf = np.gradient(esf)
     centre = float(np.sum(np.arange(lsf.size) * np.abs(lsf)) / max(np.sum(np.abs(lsf)), 1e-30))
@@ -273,8 +273,8 @@ def slanted_edge_mtf(edge_image: np.ndarray, pixel_pitch_mm: float, *, oversampl
     if not np.isfinite(image).all():
         raise InputError(name, "NaN or infinite values in the edge image")
     valid = np.ones(image.shape, bool) if valid is None else np.asarray(valid, bool)
-    gy = ndimage.sobel(ndimage.gaussian_filter(image, 1.5), axis=0)
-    gx = ndimage.sobel(ndimage.gaussian_filter(image, 1.5), axis=1)
+    smooth = ndimage.gaussian_filter(image, 1.5)
+    gy, gx = ndimage.sobel(smooth, axis=0), ndimage.sobel(smooth, axis=1)
     near_vertical = float((gx ** 2).sum()) >= float((gy ** 2).sum())
     data, mask = (image, valid) if near_vertical else (image.T, valid.T)
     direction = "horizontal" if near_vertical else "vertical"
@@ -313,7 +313,7 @@ def slanted_edge_mtf(edge_image: np.ndarray, pixel_pitch_mm: float, *, oversampl
             sel &= ~spots
             centres, esf = _esf(data, dist_px, sel, oversampling, half)
     dist = centres * pixel_pitch_mm
-    freq, mtf, lsf = _mtf_from_esf(esf, step_mm, pixel_pitch_mm, oversampling, half, n_fft)
+    freq, mtf, lsf = _mtf_from_esf(esf, step_mm, oversampling, half, n_fft)
     if mtf is None:
         raise InputError(name, "the edge has no contrast")
     nyquist = 0.5 / pixel_pitch_mm
@@ -326,7 +326,7 @@ def slanted_edge_mtf(edge_image: np.ndarray, pixel_pitch_mm: float, *, oversampl
         _, seg_esf = _esf(data, dist_px, sel & (rows_of >= a) & (rows_of < b), oversampling, half)
         if seg_esf is None:
             continue
-        _, seg_mtf, _ = _mtf_from_esf(seg_esf, step_mm, pixel_pitch_mm, oversampling, half, n_fft)
+        _, seg_mtf, _ = _mtf_from_esf(seg_esf, step_mm, oversampling, half, n_fft)
         if seg_mtf is not None:
             seg_mtfs.append(seg_mtf[keep])
     if len(seg_mtfs) >= 2:

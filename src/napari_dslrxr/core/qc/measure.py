@@ -274,7 +274,7 @@ def measure_detector_quality(flats: Sequence[np.ndarray], darks: Sequence[np.nda
                            roi_size_px=params.roi_size_px, area_fraction=params.nnps_area_fraction,
                            cut_half_width=params.nnps_cut_half_width, frequency_bin=params.frequency_bin,
                            outlier_sigma=params.outlier_sigma, names=[flat_names[i] for i in reference],
-                           progress=lambda d, t: step())
+                           progress=lambda d, t: step(), dark=dark)
     gain_map = None
     dead = np.zeros(shape, bool)
     if params.flat_field_edge:

@@ -102,13 +102,15 @@ def bin_frequencies(values: np.ndarray, frequency_bin: int) -> tuple[np.ndarray,
 def nnps_from_flats(flats: Sequence[np.ndarray], darks: Sequence[np.ndarray] | None, pixel_pitch_mm: float, *,
                     roi_size_px: int = 256, area_fraction: float = 0.9, cut_half_width: int = 7,
                     frequency_bin: int = 4, outlier_sigma: float = 0.0, names: Sequence[str] | None = None,
-                    progress: Callable[[int, int], object] | None = None) -> NNPSResult:
+                    progress: Callable[[int, int], object] | None = None,
+                    dark: np.ndarray | None = None) -> NNPSResult:
     """NNPS from flats at one air kerma: detrended, half-overlapping ROIs averaged over all flats.
 
     Each flat minus the mean dark is cut to a central area; a quadratic surface fitted to the
     area is subtracted; each ROI's 2-D periodogram ``|FFT(roi - mean)|^2 p^2 / N^2`` is divided
     by the squared mean signal of its flat. The 1-D cuts average the rows (columns) beside the
-    frequency axes, excluding the axis itself.
+    frequency axes, excluding the axis itself. ``dark``: the mean dark with its spots filled, when
+    the caller has it already (``darks`` is then not read).
 
     Raises
     ------
@@ -125,8 +127,9 @@ def nnps_from_flats(flats: Sequence[np.ndarray], darks: Sequence[np.ndarray] | N
             raise InputError(name, f"flat of shape {f.shape} differs from the first flat's {shape}")
         if not np.isfinite(f).all():
             raise InputError(name, "NaN or infinite values")
-    dark = mean_dark(darks, shape)
-    dark = fill_masked(dark, spot_mask(dark, outlier_sigma))
+    if dark is None:
+        dark = mean_dark(darks, shape)
+        dark = fill_masked(dark, spot_mask(dark, outlier_sigma))
     area, origins = analysis_layout(shape, roi_size_px, area_fraction)
     if area is None:
         raise InputError(names[0], f"the frame ({shape[0]}x{shape[1]} px) is too small for a "
