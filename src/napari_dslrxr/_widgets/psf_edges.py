@@ -13,6 +13,8 @@ and the blur kernel at the chosen image's geometry as the image layer ``"PSF ker
 
 from __future__ import annotations
 
+import dataclasses
+
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -120,6 +122,13 @@ def fit_for_display(edges, pixel_pitch_mm: float, *, shape_power: float, progres
     geometry, the read-out, and the profile plot rendered at ``plot_size_px`` (none without).
     Runs in the worker: on the GUI thread the kernel alone took about half a second and the
     plot a few tenths, with the viewer frozen."""
+    # the layers' data as grey float images, here and not on the GUI thread (a 24 MP colour
+    # layer took 1.2 s); an image with several ROIs is converted once
+    greys: dict[int, np.ndarray] = {}
+    for edge in edges:
+        if id(edge.image) not in greys:
+            greys[id(edge.image)] = grey(edge.image)
+    edges = [dataclasses.replace(edge, image=greys[id(edge.image)]) for edge in edges]
     model = fit_edges(edges, pixel_pitch_mm, shape_power=shape_power, progress=progress)
     kernel = model.kernel(source_to_object_mm, source_to_detector_mm, max_radius_px=KERNEL_RADIUS_PX)
     plot = None if plot_size_px is None else render_figure(lambda figure: draw_profiles(figure, model), plot_size_px)
@@ -229,9 +238,8 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
             sod, sdd = layer.metadata.get(SOD_KEY), layer.metadata.get(SDD_KEY)
             if sod is None or sdd is None:
                 raise ParameterError(f"{layer.name}: enter its source-object and source-detector distances")
-            data = grey(layer.data)
-            for k, roi in enumerate(rois):
-                edges.append(EdgeImage(image=data, source_to_object_mm=float(sod), source_to_detector_mm=float(sdd),
+            for k, roi in enumerate(rois):  # grey(): in the worker (fit_for_display)
+                edges.append(EdgeImage(image=layer.data, source_to_object_mm=float(sod), source_to_detector_mm=float(sdd),
                                        roi=roi, name=f"ROI {k + 1} on '{layer.name}'"))
                 used.append((layer.name, roi))
         self.edges_used = used
