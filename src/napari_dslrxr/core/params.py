@@ -24,7 +24,7 @@ from .errors import InputError, ParameterError
 from .io.input_kind import InputParams
 from .param_fields import describe_range, field_info, validate_fields
 from .stages.contrast import ContrastParams
-from .stages.deconvolution import DeconvolutionParams
+from .stages.deblur_params import DeconvolutionParams
 from .stages.dynamic_range import DynamicRangeParams
 from .stages.exposure_index import ExposureParams
 from .stages.flatfield import FlatFieldParams
