@@ -31,6 +31,11 @@ def niqa(shared_data, tmp_path_factory):
                     {d: [(f, roi) for f in frames] for d, roi in EDGE_ROIS.items()}, 1.0)
 
 
+# The 0.03 on both edges, and a regression guard on the margin measured when the
+# comparison was made like for like (0.024 left, 0.010 top).
+GAP_LIMIT = {"horizontal": TOLERANCE, "vertical": 0.015}
+
+
 @pytest.mark.parametrize("direction", list(EDGE_ROIS))
 def test_niqa_kernel_mtf_matches_the_measured_mtf(niqa, direction):
     r = niqa[direction]
@@ -38,7 +43,7 @@ def test_niqa_kernel_mtf_matches_the_measured_mtf(niqa, direction):
     band = (f >= BAND_CY_PER_PX[0]) & (f <= BAND_CY_PER_PX[1])
     assert band.sum() > 20
     gap = r["predicted"][band] - r["measured"][band]
-    assert np.abs(gap).max() < TOLERANCE, np.round(np.c_[f[band], r["measured"][band], r["predicted"][band]], 3)
+    assert np.abs(gap).max() < GAP_LIMIT[direction], np.round(np.c_[f[band], r["measured"][band], r["predicted"][band]], 3)
     # Not two flat curves agreeing: the band runs from an MTF of about 0.5 down to the noise.
     assert r["measured"][band][0] > 0.4 and r["predicted"][band][-1] < 0.05
     assert not r["model"].source_fitted

@@ -36,6 +36,7 @@ from napari_dslrxr._widgets import qc as qc_module
 from napari_dslrxr._widgets._jobs import EventLoopMonitor
 from napari_dslrxr._widgets._layers import viewer_camera
 from napari_dslrxr.core.psf.edge_images import MIN_ROI_PX
+from napari_dslrxr.core.qc import QcParams
 from napari_dslrxr.core.errors import WorkCancelled
 from napari_dslrxr.core.io import write_tiff
 from napari_dslrxr.core.psf import PSFModel, load_psf, save_psf
@@ -562,9 +563,12 @@ def test_detector_quality_buttons(plugin, tmp_path, monkeypatch, shots):
     widget._darks.value = ["QC dark"]
     widget._edge.value = viewer.layers["QC edge"]
     assert widget._pitch.value == 0.1 and widget._kerma.value == 2.5  # from the sample's metadata
-    widget._beam.value = "RQA9"
+    widget._beam.value, widget._roi_size.value = "RQA9", 128
+    widget._kerma.value, widget._pitch.value = 7.0, 0.25
     plugin.click(name, "Restore defaults")
-    assert widget._beam.value == "RQA5" and widget._kerma.value == 2.5
+    # the [qc] defaults, then the edge layer's own pitch and air kerma from its metadata
+    assert widget._beam.value == QcParams().beam and widget._roi_size.value == QcParams().roi_size_px
+    assert widget._kerma.value == 2.5 and widget._pitch.value == 0.1
     # The edge inside a rectangle of its ROI layer, drawn on the layer the button makes.
     plugin.click(name, "Draw edge ROI")
     shapes = viewer.layers["QC edge ROIs"]
