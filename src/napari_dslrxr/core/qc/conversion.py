@@ -79,7 +79,7 @@ def conversion_function(mean_signal: Sequence[float], air_kerma_ugy: Sequence[fl
     checked = np.unique(k).size >= 2
     warnings = []
     if checked:
-        slope, intercept = np.polyfit(k, s, 1)
+        intercept = float(np.polyfit(k, s, 1)[1])  # reported: a large one means an offset left in
         deviation = s / (gain * k) - 1.0
         worst = int(np.argmax(np.abs(deviation)))
         max_dev = float(100.0 * abs(deviation[worst]))

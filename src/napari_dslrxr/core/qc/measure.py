@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import InputError, ParameterError
 from .conversion import ConversionFunction, conversion_function
 from .edge import fill_masked, slanted_edge_mtf, spot_mask
-from .nnps import NNPSResult, mean_dark, nnps_from_flats
+from .nnps import NNPSResult, analysis_layout, mean_dark, nnps_from_flats
 from .params import SNR2_IN_PER_UGY, QcParams
 
 
@@ -218,10 +218,10 @@ def measure_detector_quality(flats: Sequence[np.ndarray], darks: Sequence[np.nda
     """
     params = params or QcParams()
     overrides = {k: v for k, v in (("pixel_pitch_mm", pixel_pitch_mm), ("beam", beam)) if v is not None}
-    if air_kerma_ugy is not None and np.ndim(air_kerma_ugy) == 0:
-        overrides["air_kerma_ugy"] = float(air_kerma_ugy)
-    elif air_kerma_ugy is not None:
-        overrides["air_kerma_ugy"] = float(np.asarray(air_kerma_ugy, dtype=float)[0])
+    # One value for every flat, or one per flat (the first flat's is the NNPS reference level).
+    kermas_given = None if air_kerma_ugy is None else [float(k) for k in np.atleast_1d(air_kerma_ugy)]
+    if kermas_given:
+        overrides["air_kerma_ugy"] = kermas_given[0]
     params = dataclasses.replace(params, **overrides) if overrides else params
     if not params.pixel_pitch_mm > 0:
         raise ParameterError("qc.pixel_pitch_mm: the pixel pitch is required (--pixel-pitch-mm)")
@@ -242,10 +242,10 @@ def measure_detector_quality(flats: Sequence[np.ndarray], darks: Sequence[np.nda
     flats = [_check_shape(f, shape, n) for f, n in zip(flats, flat_names)]
     darks = [_check_shape(d, shape, n) for d, n in zip(darks, dark_names)]
     edges = [_check_shape(e, shape, n) for e, n in zip(edges, edge_names)]
-    if air_kerma_ugy is None or np.ndim(air_kerma_ugy) == 0:
+    if kermas_given is None or np.ndim(air_kerma_ugy) == 0:
         kermas = [params.air_kerma_ugy] * len(flats)
     else:
-        kermas = [float(k) for k in air_kerma_ugy]
+        kermas = kermas_given
         if len(kermas) != len(flats):
             raise ParameterError(f"--air-kerma-ugy: give one value for all flats or one per flat "
                                  f"({len(flats)}), got {len(kermas)}")
@@ -260,10 +260,14 @@ def measure_detector_quality(flats: Sequence[np.ndarray], darks: Sequence[np.nda
 
     dark = mean_dark(darks, shape)
     dark = fill_masked(dark, spot_mask(dark, params.outlier_sigma))  # direct hits on the sensor
-    # Conversion function from every flat's central area (the NNPS analysis area).
-    size = int(params.nnps_area_fraction * min(shape))
-    r0, c0 = (shape[0] - size) // 2, (shape[1] - size) // 2
-    means = [float((f - dark)[r0:r0 + size, c0:c0 + size].mean()) for f in flats]
+    # Conversion function from every flat's NNPS analysis area (the whole central square when
+    # the frame is too small for one ROI: the NNPS then refuses with its own message).
+    area, _ = analysis_layout(shape, params.roi_size_px, params.nnps_area_fraction)
+    if area is None:
+        side = int(params.nnps_area_fraction * min(shape))
+        r0, c0 = (shape[0] - side) // 2, (shape[1] - side) // 2
+        area = (r0, c0, r0 + side, c0 + side)
+    means = [float((f - dark)[area[0]:area[2], area[1]:area[3]].mean()) for f in flats]
     for m, n in zip(means, flat_names):
         if not m > 0:
             raise InputError(n, "no signal above the dark frame in the central area")
