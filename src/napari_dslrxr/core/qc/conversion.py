@@ -32,8 +32,10 @@ class ConversionFunction:
         Slope of the proportional fit S = a K (signal units per µGy).
     intercept : float
         Offset of the free straight-line fit S = a' K + b (0 when only one air kerma).
+    deviation_percent : list of float
+        S / (a K) - 1 of each flat, in percent.
     max_deviation_percent : float
-        Largest |S / (a K) - 1| in percent; NaN when only one air kerma was given.
+        Largest |deviation_percent|; NaN when only one air kerma was given.
     checked : bool
         True when at least two distinct air kermas were available.
     warnings : list of str
@@ -43,6 +45,7 @@ class ConversionFunction:
     mean_signal: list
     gain_per_ugy: float
     intercept: float
+    deviation_percent: list
     max_deviation_percent: float
     checked: bool
     warnings: list = field(default_factory=list)
@@ -78,9 +81,9 @@ def conversion_function(mean_signal: Sequence[float], air_kerma_ugy: Sequence[fl
     gain = float((s * k).sum() / (k * k).sum())
     checked = np.unique(k).size >= 2
     warnings = []
+    deviation = s / (gain * k) - 1.0
     if checked:
         intercept = float(np.polyfit(k, s, 1)[1])  # reported: a large one means an offset left in
-        deviation = s / (gain * k) - 1.0
         worst = int(np.argmax(np.abs(deviation)))
         max_dev = float(100.0 * abs(deviation[worst]))
         if max_dev > tolerance_percent:
@@ -94,5 +97,6 @@ def conversion_function(mean_signal: Sequence[float], air_kerma_ugy: Sequence[fl
         warnings.append("linearity not checked: all flats have the same air kerma (give flats at two or more "
                         "air kermas to check the conversion function)")
     return ConversionFunction(air_kerma_ugy=k.tolist(), mean_signal=s.tolist(), gain_per_ugy=gain,
-                              intercept=float(intercept), max_deviation_percent=max_dev, checked=bool(checked),
+                              intercept=float(intercept), deviation_percent=(100.0 * deviation).tolist(),
+                              max_deviation_percent=max_dev, checked=bool(checked),
                               warnings=warnings)

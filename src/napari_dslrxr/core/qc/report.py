@@ -127,7 +127,7 @@ def conversion_figure(result: DetectorQuality) -> bytes:
     axes[0].set_xlabel("air kerma (µGy)", fontsize=8)
     axes[0].set_ylabel("mean signal above dark", fontsize=8)
     axes[0].legend(fontsize=7)
-    dev = 100.0 * (s / (c.gain_per_ugy * k) - 1.0)
+    dev = np.asarray(c.deviation_percent)
     tol = float(result.settings.get("linearity_tolerance_percent", 5.0))
     axes[1].axhspan(-tol, tol, color="0.9", zorder=0)
     axes[1].plot(k, dev, "o", ms=4)
