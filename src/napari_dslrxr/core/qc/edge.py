@@ -145,10 +145,15 @@ def _esf_outliers(values, dist_px, sel, centres, esf, outlier_sigma):
     resid = values - np.interp(dist_px, centres, esf)
     step = float(centres[1] - centres[0])
     slack = np.abs(np.interp(dist_px, centres, np.gradient(esf, step))) * step
-    band = np.floor(dist_px).astype(int)
-    out = np.zeros(values.shape, bool)
-    for b in np.unique(band[sel]):
-        here = sel & (band == b)
+    # The selected pixels grouped by band once (a mask per band would pass the frame per band).
+    index = np.flatnonzero(sel)
+    band = np.floor(dist_px.ravel()[index]).astype(int)
+    order = np.argsort(band, kind="stable")
+    index, band = index[order], band[order]
+    starts = np.flatnonzero(np.diff(band, prepend=band[:1] - 1))
+    out = np.zeros(values.size, bool)
+    resid, slack = resid.ravel(), slack.ravel()
+    for here in np.split(index, starts[1:]):
         r = resid[here]
         if r.size < 8:
             continue
@@ -156,7 +161,7 @@ def _esf_outliers(values, dist_px, sel, centres, esf, outlier_sigma):
         sigma = robust_sigma(r, center=centre)
         if sigma > 0:
             out[here] = np.abs(r - centre) > outlier_sigma * sigma + slack[here]
-    return out
+    return out.reshape(values.shape)
 
 
 def _mtf_from_esf(esf, step_mm, oversampling, half_width_px, n_fft):
