@@ -171,3 +171,39 @@ def test_sample_edge_sharpened_with_the_true_psf_file(make_napari_viewer, wait_f
     wait_for_worker(widget.run())
     before, after = rise_px(near.data), rise_px(viewer.layers["edge SOD 500 mm deconvolved"].data)
     assert before > 10.0 and after < 0.5 * before
+
+
+def test_psf_file_kernel_is_made_off_the_gui_thread(docked, tmp_path, wait_for_worker, monkeypatch, qtbot):
+    """A psf.json's kernel (up to a second for a fitted model) is computed in the job's worker,
+    for the whole-image run and for the live preview, whose margin follows the kernel's size."""
+    import threading
+
+    from napari_dslrxr._widgets import deconvolution as deconvolution_module
+    from napari_dslrxr.core.psf import PSFModel, save_psf
+
+    viewer, widget, _sharp, _blurred = docked
+    made_on: list[bool] = []
+    real_load = deconvolution_module.load_psf
+
+    def recording_load(path):
+        made_on.append(threading.current_thread() is threading.main_thread())
+        return real_load(path)
+
+    monkeypatch.setattr(deconvolution_module, "load_psf", recording_load)
+    model = PSFModel(pixel_pitch_mm=0.1, source_fwhm_x_mm=0.0, source_fwhm_y_mm=0.0,
+                     detector_fwhm_core_mm=0.1 * 1.5 * 2.3548, detector_fwhm_tail_mm=0.0, detector_weight_core=1.0,
+                     shape_power=2.0)
+    save_psf(model, tmp_path / "psf.json")
+    widget._kernel_layer.value = None
+    widget._psf_file.value = tmp_path / "psf.json"
+    widget._method.value = "wiener"
+    wait_for_worker(widget.run())
+    assert made_on == [False] and "bars deconvolved" in viewer.layers
+    widget._sod.value = float(widget._sod.value) + 10.0  # another geometry: another kernel
+    widget._live.value = True
+    qtbot.waitUntil(lambda: widget.last_preview is not None, timeout=20_000)
+    assert made_on == [False, False]
+    radius = deconvolution_module.resolve_kernel(widget.kernel_source()).shape[0] // 2
+    rows, cols = widget.last_preview["rows"], widget.last_preview["cols"]
+    visible_rows, visible_cols = deconvolution_module.visible_region(viewer, widget._image.value)
+    assert rows.start == max(visible_rows.start - radius, 0) and cols.stop == min(visible_cols.stop + radius, 224)

@@ -13,6 +13,7 @@ and a cancel button, giving ``"<layer> deconvolved"``.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -46,20 +47,50 @@ REG_START = 100.0
 _DEBOUNCE_MS = 60
 
 
-def deconvolve_for_display(image: np.ndarray, kernel: np.ndarray, *, method: str, reg: float):
-    """Worker job (generator): the core's steps, then what showing the result needs, computed
-    here rather than on the GUI thread: the result, its display range, and the value ranges
-    of input and result."""
-    out = yield from deconvolve_steps(image, kernel, method=method, reg=reg)
+def deconvolve_for_display(image: np.ndarray, kernel: np.ndarray | tuple, *, method: str, reg: float):
+    """Worker job (generator): the kernel (:func:`resolve_kernel`), the core's steps, then what
+    showing the result needs, computed here rather than on the GUI thread: the result, its
+    display range, and the value ranges of input and result."""
+    out = yield from deconvolve_steps(image, resolve_kernel(kernel), method=method, reg=reg)
     return (out, robust_limits(out), (float(np.min(image)), float(np.max(image))),
             (float(np.min(out)), float(np.max(out))))
 
 
-def preview_region(image: np.ndarray, kernel: np.ndarray, rows: slice, cols: slice, *, method: str,
-                   reg: float) -> np.ndarray:
-    """Deconvolve the visible crop ``image[rows, cols]`` with the preview solver (core call)."""
+@functools.lru_cache(maxsize=4)
+def _psf_file_kernel(path: str, mtime_ns: int, source_to_object_mm: float,
+                     source_to_detector_mm: float) -> np.ndarray:
+    """The kernel of a psf.json at a geometry (cached by file version and geometry: the
+    preview asks for it on every slider move; a fitted model's kernel takes up to a second)."""
+    kernel = load_psf(path).kernel(source_to_object_mm, source_to_detector_mm)
+    kernel.setflags(write=False)  # shared by every job that asks for it
+    return kernel
+
+
+def resolve_kernel(source: np.ndarray | tuple) -> np.ndarray:
+    """Worker side of :meth:`DeconvolutionWidget.kernel_source`: a kernel array as it is, or
+    ``(psf.json path, mtime_ns, SOD mm, SDD mm)`` computed (cached) here, off the GUI thread."""
+    if isinstance(source, np.ndarray):
+        return source
+    return _psf_file_kernel(*source)
+
+
+def preview_region(image: np.ndarray, kernel: np.ndarray | tuple, rows: slice, cols: slice, *, method: str,
+                   reg: float) -> tuple[np.ndarray, slice, slice]:
+    """Deconvolve the visible crop ``image[rows, cols]`` grown by the kernel's radius (the
+    margin the solver's edges need; the kernel, hence its size, is made here) with the
+    preview solver (core call). Returns the result and the rows and columns it covers."""
+    kernel = resolve_kernel(kernel)
+    margin = kernel.shape[0] // 2
+    height, width = np.shape(image)[:2]
+    rows = slice(max(rows.start - margin, 0), min(rows.stop + margin, height))
+    cols = slice(max(cols.start - margin, 0), min(cols.stop + margin, width))
     crop = np.ascontiguousarray(image[rows, cols])
-    return deconvolve(crop, kernel, method=PREVIEW_METHOD[method], reg=reg)
+    return deconvolve(crop, kernel, method=PREVIEW_METHOD[method], reg=reg), rows, cols
+
+
+def estimate_for_display(image: np.ndarray, kernel: np.ndarray | tuple, method: str) -> float:
+    """Worker job: the core's regularisation estimate, with the kernel made here."""
+    return estimate_regularisation(image, resolve_kernel(kernel), method)
 
 
 class DeconvolutionWidget(LivePreviewMixin, Container):
@@ -113,7 +144,6 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
                                   self._readout, self._restore])
         self.result: np.ndarray | None = None
         self.last_preview: dict | None = None
-        self._kernel_cache: tuple | None = None
         self._trigger_preview = debounced(self, self.update_preview, _DEBOUNCE_MS)
         for widget in (self._reg, self._method, self._live, self._image, self._kernel_layer, self._psf_file,
                        self._sod, self._sdd):
@@ -144,18 +174,21 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
             self._reg.value = float(np.clip(float(params.reg), REG_SLIDER_MIN, REG_SLIDER_MAX))
 
     # -- inputs -----------------------------------------------------------------------------------
-    def kernel(self) -> np.ndarray:
-        """The blur kernel: the kernel layer, else the PSF file at the entered geometry (cached)."""
+    def kernel_source(self) -> np.ndarray | tuple:
+        """What the blur kernel is made from, for a worker's :func:`resolve_kernel`: the kernel
+        layer's data, else ``(psf.json, its mtime_ns, SOD, SDD)`` (computing a fitted model's
+        kernel takes up to a second: never on the GUI thread)."""
         if self._kernel_layer.value is not None:
             return np.asarray(self._kernel_layer.value.data, np.float32)
         path = self._psf_file.value
         if not path or not Path(path).is_file():
             raise ParameterError("choose a kernel layer or a psf.json file")
-        key = (str(path), Path(path).stat().st_mtime_ns, float(self._sod.value), float(self._sdd.value))
-        if self._kernel_cache is None or self._kernel_cache[0] != key:
-            model = load_psf(path)
-            self._kernel_cache = (key, model.kernel(key[2], key[3]))
-        return self._kernel_cache[1]
+        return (str(path), Path(path).stat().st_mtime_ns, float(self._sod.value), float(self._sdd.value))
+
+    def kernel(self) -> np.ndarray:
+        """The blur kernel: the kernel layer, else the PSF file at the entered geometry (cached;
+        computed on the calling thread)."""
+        return resolve_kernel(self.kernel_source())
 
     def _image_layer(self) -> napari.layers.Image:
         layer = self._image.value
@@ -171,10 +204,10 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         layer = self._image_layer()
         image = np.asarray(layer.data)
         rows, cols = visible_region(self._viewer, layer, image.shape)
-        kernel, method = self.kernel(), self._method.value
+        kernel, method = self.kernel_source(), self._method.value
         self._auto.enabled = False
         self._readout.value = "estimating the regularisation..."
-        return run_in_worker(estimate_regularisation, image[rows, cols], kernel, method,
+        return run_in_worker(estimate_for_display, image[rows, cols], kernel, method,
                              desc="regularisation estimate", on_returned=self._estimated,
                              on_finished=self._estimate_done, panel=self._job, readout=self._readout)
 
@@ -192,14 +225,13 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
     def _start_preview(self) -> None:
         layer = self._image_layer()
         image = np.asarray(layer.data)
-        kernel = self.kernel()
-        margin = kernel.shape[0] // 2
-        rows, cols = visible_region(self._viewer, layer, image.shape, margin_px=margin)
+        kernel = self.kernel_source()
+        rows, cols = visible_region(self._viewer, layer, image.shape)  # the worker adds the kernel's margin
         method, reg = self._method.value, float(self._reg.value)
         self._preview_pending = False
         self._preview_worker = run_in_worker(
             preview_region, image, kernel, rows, cols, method=method, reg=reg, desc="deconvolution preview", progress_bar=False,
-            on_returned=lambda out: self._show_preview(layer, out, rows, cols, method, reg),
+            on_returned=lambda out: self._show_preview(layer, *out, method, reg),
             on_finished=self._preview_done)
 
     def _show_preview(self, layer, out: np.ndarray, rows: slice, cols: slice, method: str, reg: float) -> None:
@@ -223,7 +255,7 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         layer = self._image_layer()
         params = self.get_params()
         image = np.asarray(layer.data)
-        kernel = self.kernel()
+        kernel = self.kernel_source()
         self._apply.enabled = False
         self._readout.value = f"deconvolving with {params.method}..."
         self._full_worker = run_in_worker(
