@@ -261,6 +261,19 @@ class JobPanel:
         notify_info(f"{self.desc}: cancelled")
 
 
+def job_done(button: Any, panel: JobPanel, readout: Any) -> Callable[[], None]:
+    """The ``on_finished`` of a widget's job (any outcome): its button enabled again, and the
+    read-out, if still at a "...ing..." text, replaced by the outcome in the panel's status
+    (it never stays at "running..." after an error or a cancel)."""
+
+    def done() -> None:
+        button.enabled = True
+        if readout.value.endswith("..."):
+            readout.value = panel.status.value
+
+    return done
+
+
 def run_in_worker(work: Callable, *args: Any, desc: str,
                   on_returned: Callable[[Any], None],
                   on_finished: Callable[[], None] | None = None,
@@ -463,11 +476,8 @@ class ReportButtonsMixin:
     REPORT_NAME = "report"
 
     def _done(self) -> None:
-        """The run's job is over (any outcome): the run button again, and the read-out not
-        left at "...ing...". """
-        self._run.enabled = True
-        if self._readout.value.endswith("..."):
-            self._readout.value = self._job.status.value
+        """The run's job is over (any outcome): :func:`job_done` of the run button."""
+        job_done(self._run, self._job, self._readout)()
 
     def _written(self, folder: Path, paths: dict) -> None:
         self.report_paths = paths

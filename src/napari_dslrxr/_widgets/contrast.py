@@ -39,7 +39,7 @@ from ..core.pipeline import process_frame
 from ..core.stages.contrast import ContrastParams
 from ..core.stages.dynamic_range import DynamicRangeParams
 from ._controls import param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker
 from ._layers import LivePreviewMixin, debounced, show_layer
 from ._registry import register_stage_widget
 
@@ -270,18 +270,14 @@ class ContrastWidget(LivePreviewMixin, Container):
         if full:
             return run_in_worker(render, self._cached(layer), np.asarray(layer.data), kind, params,
                                  self.preview_max_pixels, True, progress=self._job.callback, desc="contrast",
-                                 on_returned=returned, on_finished=self._apply_done, panel=self._job,
+                                 on_returned=returned, on_finished=job_done(self._apply, self._job, self._readout),
+                                 panel=self._job,
                                  readout=self._readout)
         worker = run_in_worker(render, self._cached(layer), np.asarray(layer.data), kind, params,
                                self.preview_max_pixels, False, desc="contrast preview", progress_bar=False,
                                on_returned=returned, on_finished=self._preview_done)
         self._preview_worker = worker
         return worker
-
-    def _apply_done(self) -> None:
-        self._apply.enabled = True
-        if self._readout.value == "running...":
-            self._readout.value = self._job.status.value
 
     def _show(self, layer, prepared: PreparedInput, display: np.ndarray, full: bool, started: float,
               report: dict) -> None:

@@ -28,7 +28,7 @@ from ..core.param_fields import field_info
 from ..core.params import DeblurParams
 from ..core.psf import load_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, notify_info, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker
 from ._layers import LivePreviewMixin, debounced, robust_limits, show_layer, viewer_camera, visible_region
 from ._registry import register_stage_widget
 
@@ -209,16 +209,12 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         self._readout.value = "estimating the regularisation..."
         return run_in_worker(estimate_for_display, image[rows, cols], kernel, method,
                              desc="regularisation estimate", on_returned=self._estimated,
-                             on_finished=self._estimate_done, panel=self._job, readout=self._readout)
+                             on_finished=job_done(self._auto, self._job, self._readout), panel=self._job,
+                             readout=self._readout)
 
     def _estimated(self, reg: float) -> None:
         self._reg.value = float(np.clip(reg, REG_SLIDER_MIN, REG_SLIDER_MAX))
         self._readout.value = f"estimated regularisation {reg:.3g}"
-
-    def _estimate_done(self) -> None:
-        self._auto.enabled = True
-        if self._readout.value.endswith("..."):
-            self._readout.value = self._job.status.value
 
     # -- live preview -----------------------------------------------------------------------------
     @guarded("deconvolution preview")
@@ -261,17 +257,13 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         self._full_worker = run_in_worker(
             deconvolve_for_display, image, kernel, method=params.method, reg=params.reg,
             desc=f"deconvolution ({params.method})", panel=self._job, readout=self._readout,
-            on_returned=lambda out: self._show_full(layer, *out, params), on_finished=self._full_done)
+            on_returned=lambda out: self._show_full(layer, *out, params),
+            on_finished=job_done(self._apply, self._job, self._readout))
         return self._full_worker
 
     def cancel(self) -> None:
         """Stop the whole-image run at its next step (the Cancel button)."""
         self._job.cancel()
-
-    def _full_done(self) -> None:
-        self._apply.enabled = True
-        if self._readout.value.endswith("..."):
-            self._readout.value = self._job.status.value
 
     def _show_full(self, layer, out: np.ndarray, limits: tuple[float, float], input_range: tuple[float, float],
                    out_range: tuple[float, float], params: DeconvolutionParams) -> None:

@@ -20,7 +20,7 @@ from ..core.errors import ParameterError
 from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
 from ..core.io import read_image
 from ._controls import param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, notify_error, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, notify_error, readout_label, run_in_worker
 from ._layers import debounced, remove_layer, robust_limits, same_geometry, show_layer
 from ._registry import register_stage_widget
 
@@ -173,13 +173,8 @@ class FlatFieldWidget(Container):
         self._readout.value = "running..."
         return run_in_worker(correct_with_layers, image, flat, dark, params, desc="flat field",
                              progress=self._job.callback, on_returned=lambda out: self._show(layer, out, False),
-                             on_finished=self._done,
+                             on_finished=job_done(self._apply, self._job, self._readout),
                              panel=self._job, readout=self._readout)
-
-    def _done(self) -> None:
-        self._apply.enabled = True
-        if self._readout.value == "running...":
-            self._readout.value = self._job.status.value
 
     def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int, tuple[float, float]],
               preview: bool) -> None:

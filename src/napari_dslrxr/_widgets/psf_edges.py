@@ -28,7 +28,7 @@ from ..core.psf.fit_params import EdgeFitSettings
 from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, notify_info, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker
 from ._layers import show_layer
 from ._plots import ShownFigureMixin, render_figure, worker_plot
 
@@ -277,17 +277,12 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
                              source_to_object_mm=geometry_mm[0], source_to_detector_mm=geometry_mm[1],
                              plot_size_px=None if self._plot is None else self._plot.size_px(),
                              desc="PSF edge fit", on_returned=lambda out: self._show(*out, geometry_mm),
-                             on_finished=self._done,
+                             on_finished=job_done(self._fit, self._job, self._readout),
                              panel=self._job, readout=self._readout)
 
     def cancel(self) -> None:
         """Stop the running fit at its next optimiser iteration (the Cancel button)."""
         self._job.cancel()
-
-    def _done(self) -> None:
-        self._fit.enabled = True
-        if self._readout.value.endswith("..."):
-            self._readout.value = self._job.status.value
 
     def _show(self, model: PSFModel, kernel: np.ndarray, summary: str, plot: tuple | None,
               geometry_mm: tuple[float, float]) -> Iterator[None]:
