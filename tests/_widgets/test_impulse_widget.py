@@ -1,4 +1,4 @@
-"""Impulse widget end to end: pulses found per channel as Labels layers, gain shown."""
+"""Impulse widget end to end: pulses found per channel as coloured mask layers, gain shown."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def _docked(make_napari_viewer):
     return viewer, widget
 
 
-def test_grey_pulses_become_a_labels_layer_with_count_and_gain(make_napari_viewer, wait_for_worker, pulsed_grey):
+def test_grey_pulses_become_a_mask_layer_with_count_and_gain(make_napari_viewer, wait_for_worker, pulsed_grey):
     image, truth = pulsed_grey(gain=4.0)
     viewer, widget = _docked(make_napari_viewer)
     layer = viewer.add_image(image, name="frame", scale=(0.1, 0.1))
@@ -25,6 +25,7 @@ def test_grey_pulses_become_a_labels_layer_with_count_and_gain(make_napari_viewe
     wait_for_worker(widget.run())
 
     labels = viewer.layers["frame pulses grey"]
+    assert set(np.unique(labels.data)) == {0, 1}
     mask = labels.data > 0
     hits = np.count_nonzero(mask & truth)
     false_alarms = np.count_nonzero(mask & ~truth)
@@ -40,7 +41,7 @@ def test_grey_pulses_become_a_labels_layer_with_count_and_gain(make_napari_viewe
     assert gain == pytest.approx(4.0, rel=0.15) and f"{gain:.4g}" in text
 
 
-def test_rgb_gives_one_labels_layer_per_hsv_channel_and_rerun_updates(make_napari_viewer, wait_for_worker, pulsed_grey):
+def test_rgb_gives_one_mask_layer_per_hsv_channel_in_its_colour_and_rerun_updates(make_napari_viewer, wait_for_worker, pulsed_grey):
     grey, truth = pulsed_grey(shape=(128, 160), n_pulses=40)
     rgb = np.stack([grey, grey * 0.9, grey * 0.5], axis=-1).astype(np.uint16)
     viewer, widget = _docked(make_napari_viewer)
@@ -50,7 +51,11 @@ def test_rgb_gives_one_labels_layer_per_hsv_channel_and_rerun_updates(make_napar
     assert {"photo pulses H", "photo pulses S", "photo pulses V", "photo cleaned"} <= set(names)
     assert viewer.layers["photo cleaned"].rgb
     v_mask = viewer.layers["photo pulses V"].data
-    assert set(np.unique(v_mask)) <= {0, 3}  # V pulses carry label 3 (own colour)
+    assert set(np.unique(v_mask)) <= {0, 1}
+    # each channel in its own colour, opaque on a pulse, transparent elsewhere
+    colours = {c: viewer.layers[f"photo pulses {c}"].colormap.map(np.array([0.0, 1.0])) for c in "HSV"}
+    assert all(rgba[0, 3] == 0 and rgba[1, 3] == 1 for rgba in colours.values())
+    assert len({tuple(rgba[1]) for rgba in colours.values()}) == 3
     assert np.count_nonzero((v_mask > 0) & truth) >= 0.95 * truth.sum()
     # Zero passes on V: re-running replaces the same layers instead of adding new ones.
     widget._passes["V"].value = 0

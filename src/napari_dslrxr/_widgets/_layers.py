@@ -106,8 +106,9 @@ def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: s
             for key in ("scale", "translate"):
                 if key in kwargs and not np.allclose(getattr(layer, key)[-2:], kwargs[key]):
                     setattr(layer, key, kwargs[key])
-            if "colormap" in kwargs and getattr(layer.colormap, "name", None) != kwargs["colormap"]:
-                layer.colormap = kwargs["colormap"]
+            wanted = kwargs.get("colormap")  # a name or a napari Colormap
+            if wanted is not None and getattr(layer.colormap, "name", None) != getattr(wanted, "name", wanted):
+                layer.colormap = wanted
             for key in ("opacity", "visible"):
                 if key in kwargs and getattr(layer, key) != kwargs[key]:
                     setattr(layer, key, kwargs[key])

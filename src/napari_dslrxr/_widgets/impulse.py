@@ -3,9 +3,11 @@
 The user picks an image layer, the colour space, the passes per channel (H, S, V for
 colour, grey for grey images) and the polarity of the spots (bright, dark or both). The
 cleaned image appears as ``"<layer> cleaned"`` and the detected pulses of each channel as
-a Labels layer ``"<layer> pulses <channel>"`` (one label value per channel, so noise
-patches of H, S and V can be compared by colour). Pulse counts,
-the estimated pulse rate and the estimated Poisson gain are shown under the button.
+a mask layer ``"<layer> pulses <channel>"`` (1 = pulse), drawn in the channel's own colour and
+transparent elsewhere, so noise patches of H, S and V can be compared by colour. They are
+image layers, not Labels layers: napari sets a Labels layer up with its painting tools
+(several times the GUI-thread time of an image layer), and a mask is only looked at. Pulse
+counts, the estimated pulse rate and the estimated Poisson gain are shown under the button.
 """
 
 from __future__ import annotations
@@ -19,15 +21,24 @@ from magicgui.widgets import ComboBox, Container, PushButton, create_widget
 from ..core.errors import ParameterError
 from ..core.stages.impulse import ImpulseParams, ImpulseResult, remove_impulses
 from ._controls import param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker
 from ._layers import robust_limits, same_geometry, show_layer
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
     import napari
 
-#: Label value of each channel's pulse mask (distinct colours in napari's label colormap).
-CHANNEL_LABEL = {"grey": 1, "H": 1, "S": 2, "V": 3, "R": 1, "G1": 2, "G2": 3, "B": 4}
+#: Colour (RGB) of each channel's pulse mask: distinct, bright on a grey radiograph.
+CHANNEL_COLOUR = {"grey": (1.0, 0.0, 1.0), "H": (1.0, 0.0, 1.0), "S": (1.0, 1.0, 0.0), "V": (0.0, 1.0, 1.0),
+                  "R": (1.0, 0.2, 0.2), "G1": (0.2, 1.0, 0.2), "G2": (0.6, 1.0, 0.2), "B": (0.3, 0.5, 1.0)}
+
+
+def pulse_colormap(channel: str):
+    """napari colormap of a channel's 0/1 pulse mask: transparent at 0, its colour at 1."""
+    from napari.utils.colormaps import Colormap
+
+    colour = CHANNEL_COLOUR.get(channel, (1.0, 0.0, 1.0))
+    return Colormap([[0.0, 0.0, 0.0, 0.0], [*colour, 1.0]], name=f"pulses {channel}")
 
 
 def pulse_summary(result: ImpulseResult) -> str:
@@ -48,15 +59,14 @@ def clean_for_display(image: np.ndarray, params: ImpulseParams, space: str,
                       progress=None) -> tuple[ImpulseResult, tuple[float, float], dict[str, np.ndarray], str]:
     """Worker job: the core stage, then what the widget shows of it (computed here, not on
     the GUI thread, where a full-size pass per channel would freeze the viewer): the cleaned
-    image's display range, the pulse masks as label images, the read-out."""
+    image's display range, the pulse masks as 0/1 images, the read-out."""
     result = remove_impulses(image, params, space=space, progress=progress)
-    labels = {name: mask.astype(np.uint8) * np.uint8(CHANNEL_LABEL.get(name, 1))
-              for name, mask in result.masks.items()}
-    return result, robust_limits(result.image), labels, pulse_summary(result)
+    masks = {name: np.ascontiguousarray(mask, dtype=np.uint8) for name, mask in result.masks.items()}
+    return result, robust_limits(result.image), masks, pulse_summary(result)
 
 
 class ImpulseWidget(Container):
-    """Remove impulse noise from an image layer; show per-channel pulse masks as Labels layers."""
+    """Remove impulse noise from an image layer; show per-channel pulse masks in colour."""
 
     SECTION = "impulse"
 
@@ -125,25 +135,21 @@ class ImpulseWidget(Container):
         self._readout.value = "running..."
         return run_in_worker(clean_for_display, image, params, space, progress=self._job.callback,
                              desc="impulse removal",
-                             on_returned=lambda out: self._show_steps(layer, *out), on_finished=self._done,
+                             on_returned=lambda out: self._show_steps(layer, *out),
+                             on_finished=job_done(self._run_button, self._job, self._readout),
                              panel=self._job, readout=self._readout)
 
-    def _done(self) -> None:
-        self._run_button.enabled = True
-        if self._readout.value == "running...":
-            self._readout.value = self._job.status.value
-
     def _show_steps(self, layer: napari.layers.Image, result: ImpulseResult, limits: tuple[float, float],
-                    labels: dict[str, np.ndarray], summary: str) -> Iterator[None]:
+                    masks: dict[str, np.ndarray], summary: str) -> Iterator[None]:
         """Show the result one layer per event-loop turn (each new layer costs napari
         0.1-0.2 s on the GUI thread)."""
         self.result = result
         geometry = same_geometry(layer)
         show_layer(self._viewer, result.image, f"{layer.name} cleaned", "image",
                    rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, **geometry)
-        for name, label_image in labels.items():
+        for name, mask in masks.items():
             yield
-            show_layer(self._viewer, label_image, f"{layer.name} pulses {name}", "labels",
-                       opacity=0.8, **geometry)
+            show_layer(self._viewer, mask, f"{layer.name} pulses {name}", "image", colormap=pulse_colormap(name),
+                       contrast_limits=(0.0, 1.0), opacity=0.8, blending="translucent", **geometry)
         yield
         self._readout.value = summary
