@@ -11,6 +11,10 @@ heartbeat (a 5 ms QTimer, ``EventLoopMonitor``) records the longest gap in three
   is napari's and the renderer's cost, reported); every later run updates them in place, and
   that is held to the same 100 ms.
 
+Beside each phase's longest gap, ``<phase>_cpu`` is the GUI thread's own CPU time in its
+busiest turn (:func:`time.thread_time`): on a shared machine a gap is stretched by waiting for
+the CPU (and for the X server and the software renderer's threads), its CPU time much less.
+
 Each button is clicked ``REPEATS`` times, each run reported on its own; before every click
 the viewer is left ``SETTLE_S`` to finish the previous result's redraws. The 1-minute load
 average is recorded: on a shared machine the GUI thread gets a smaller share of the CPU and
@@ -152,6 +156,32 @@ class _WhereBlocked:
                         out.write(f"    [{name}] " + " < ".join(lines) + "\n")
 
 
+def _cpu_timed_monitor(base: type) -> type:
+    """``base`` (the event-loop heartbeat) that also keeps the GUI thread's CPU time spent in
+    each gap (:func:`time.thread_time` between two ticks): what the GUI thread itself computed
+    in that turn, without the time it waited for the CPU, the X server or the software
+    renderer's threads, which a loaded machine stretches."""
+
+    class CpuTimedMonitor(base):
+        def start(self):
+            self.cpu_gaps: list[tuple[float, float, float]] = []
+            self._cpu_last = time.thread_time()
+            return super().start()
+
+        def _tick(self) -> None:
+            now, cpu = time.perf_counter(), time.thread_time()
+            if now - self._last > 3 * self.interval_s:
+                self.cpu_gaps.append((self._last, now, cpu - self._cpu_last))
+            self._cpu_last = cpu
+            super()._tick()
+
+        def max_cpu_between(self, start: float, end: float) -> float:
+            """Most GUI-thread CPU time in one gap that ended in ``(start, end]``."""
+            return max((c for a, b, c in self.cpu_gaps if start < b <= end), default=0.0)
+
+    return CpuTimedMonitor
+
+
 class _Bot:
     """The few qtbot calls the click helper uses, without pytest."""
 
@@ -178,6 +208,7 @@ def measure(where: Path | None = None) -> dict:
     import napari
 
     click_suite = load_test_module("tests/_widgets/test_click_every_button.py", "click_suite")
+    click_suite.EventLoopMonitor = _cpu_timed_monitor(click_suite.EventLoopMonitor)
     viewer = napari.Viewer(show=True)
     plugin = click_suite.Plugin(viewer, _Bot())
     from napari_dslrxr._cli import view as view_command
@@ -246,6 +277,11 @@ def measure(where: Path | None = None) -> dict:
         "worst_job_block_ms": worst_job_ms,
         "worst_rerun_result_block_ms": worst_rerun_result_ms,
         "worst_first_result_block_ms": max(phases["result"] for phases in runs[0].values()),
+        "worst_gui_cpu_in_one_turn_ms": {
+            "job": max(phases.get("job_cpu", 0.0) for run in runs for phases in run.values()),
+            "first_result": max(phases.get("result_cpu", 0.0) for phases in runs[0].values()),
+            "rerun_result": max(phases.get("result_cpu", 0.0) for run in runs[1:] for phases in run.values()),
+        },
         "target_block_ms": TARGET_JOB_BLOCK_S * 1000,
         "idle_max_gap_ms_before_after": idle_ms,
         "load_average_1min_per_core": round(load_per_core, 2),
