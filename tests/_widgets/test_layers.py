@@ -39,3 +39,20 @@ def test_robust_limits_ignore_outliers():
     lo, hi = robust_limits(data)
     assert lo == pytest.approx(10.0) and hi == pytest.approx(20.0)
     assert robust_limits(np.zeros((4, 4))) == (0.0, 1.0)
+
+
+@pytest.mark.gui
+def test_colour_layer_of_counts_has_a_thumbnail_scaled_by_its_contrast_limits(make_napari_viewer):
+    """napari's own thumbnail of a uint16 colour layer is white; a result layer's follows its
+    contrast limits as the canvas does: the left half (at the lower limit) black, the right
+    half (at the upper limit) white."""
+    from napari_dslrxr._widgets._layers import show_layer
+
+    viewer = make_napari_viewer()
+    counts = np.full((64, 64, 3), 1000, np.uint16)
+    counts[:, 32:] = 3000
+    layer = show_layer(viewer, counts, "cleaned", "image", rgb=True, contrast_limits=(1000.0, 3000.0))
+    rgb = layer.thumbnail[..., :3].astype(int)
+    assert rgb[:, :15].max() == 0 and rgb[:, 17:].min() == 255
+    layer.contrast_limits = (0.0, 6000.0)  # the thumbnail follows (half grey on the right)
+    assert 120 <= layer.thumbnail[:, 20, 0].min() <= layer.thumbnail[:, 20, 0].max() <= 135

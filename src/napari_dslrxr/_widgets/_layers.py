@@ -3,7 +3,7 @@ of an image, and the live preview's mechanics (one worker at a time, debounced t
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Generator, Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -125,7 +125,57 @@ def show_layer(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: s
     if layer_type == "image" and "contrast_limits" not in kwargs:
         kwargs["contrast_limits"] = robust_limits(data)
     add = getattr(viewer, f"add_{layer_type}")
-    return add(data, name=name, **kwargs)
+    layer = add(data, name=name, **kwargs)
+    if layer_type == "image" and layer.rgb and np.ndim(data) == 3 and np.asarray(data).dtype != np.uint8:
+        rgb_thumbnail_from_contrast_limits(layer)
+    return layer
+
+
+def rgb_thumbnail_from_contrast_limits(layer: napari.layers.Image) -> None:
+    """Give a colour layer of counts (uint16, float) a thumbnail scaled by its contrast limits.
+
+    napari makes a colour layer's thumbnail from the raw values as if they were 0-1 (or
+    0-255), so a layer of camera counts shows an all-white thumbnail in the layer list
+    although the canvas, which applies the contrast limits, is right. The layer's thumbnail
+    update is replaced (on this layer only) by a subsample scaled by the contrast limits.
+    """
+
+    def update() -> None:
+        data = np.asarray(layer.data)
+        step = max(1, int(np.ceil(max(data.shape[:2]) / 32)))
+        low, high = (float(v) for v in layer.contrast_limits)
+        sample = (data[::step, ::step, :3].astype(np.float32) - low) / max(high - low, 1e-12)
+        alpha = np.full(sample.shape[:2] + (1,), float(layer.opacity), np.float32)
+        layer.thumbnail = np.concatenate([np.clip(sample, 0.0, 1.0) ** float(layer.gamma), alpha], axis=2)
+
+    layer._update_thumbnail = update  # napari's method for this layer; called on every refresh
+    update()
+
+
+def show_layer_steps(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: str = "image",
+                     **kwargs: Any) -> Generator[None, None, napari.layers.Layer]:
+    """:func:`show_layer` over two event-loop turns when the layer is new: added hidden, shown
+    at the next turn (``yield`` between them; for a generator ``on_returned`` of
+    :func:`run_in_worker`). napari builds a new layer's controls and visual when it is added
+    and compiles its shaders when it first draws it; one after the other they froze the
+    viewer longer than either alone. ``layer = yield from show_layer_steps(...)``."""
+    reveal = name not in viewer.layers and kwargs.get("visible", True)
+    if reveal:
+        kwargs["visible"] = False
+    layer = show_layer(viewer, data, name, layer_type, **kwargs)
+    if reveal:
+        yield
+        layer.visible = True
+    return layer
+
+
+def finish_steps(steps: Iterator[None]) -> Any:
+    """Run a generator of display steps to its end at once; return its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
 
 
 def robust_limits(data: np.ndarray, percentiles: tuple[float, float] = (0.5, 99.5)) -> tuple[float, float]:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -40,7 +41,7 @@ from ..core.stages.contrast import ContrastParams
 from ..core.stages.dynamic_range import DynamicRangeParams
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker
-from ._layers import LivePreviewMixin, debounced, show_layer
+from ._layers import LivePreviewMixin, debounced, show_layer_steps
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -265,7 +266,7 @@ class ContrastWidget(LivePreviewMixin, Container):
         def returned(out) -> None:
             prepared, display, report = out
             self._store(layer, kind, prepared)
-            self._show(layer, prepared, display, full, started, report)
+            return self._show(layer, prepared, display, full, started, report)
 
         if full:
             return run_in_worker(render, self._cached(layer), np.asarray(layer.data), kind, params,
@@ -280,7 +281,8 @@ class ContrastWidget(LivePreviewMixin, Container):
         return worker
 
     def _show(self, layer, prepared: PreparedInput, display: np.ndarray, full: bool, started: float,
-              report: dict) -> None:
+              report: dict) -> Iterator[None]:
+        """Show the result (a new layer over two event-loop turns, :func:`show_layer_steps`)."""
         scale = np.asarray(layer.scale[-2:], float) * (1.0 if full else prepared.factor)
         # Pixel centres: a preview pixel covers `factor` input pixels.
         translate = np.asarray(layer.translate[-2:], float)
@@ -291,8 +293,8 @@ class ContrastWidget(LivePreviewMixin, Container):
         name = f"{layer.name} contrast" if full else f"{layer.name} contrast (preview)"
         if not full:
             self._preview_layer = name
-        show_layer(self._viewer, display, name, "image", scale=tuple(scale), translate=tuple(translate),
-                   contrast_limits=(0.0, 1.0), colormap="gray")
+        yield from show_layer_steps(self._viewer, display, name, "image", scale=tuple(scale),
+                                    translate=tuple(translate), contrast_limits=(0.0, 1.0), colormap="gray")
         elapsed = time.perf_counter() - started
         clipped_fraction = report.get("clipped_fraction", 0.0)
         # the display's self-check (as the pipeline's sidecar and the command line say it)

@@ -14,6 +14,7 @@ and a cancel button, giving ``"<layer> deconvolved"``.
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -29,7 +30,7 @@ from ..core.params import DeblurParams
 from ..core.psf import load_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker
-from ._layers import LivePreviewMixin, debounced, robust_limits, show_layer, viewer_camera, visible_region
+from ._layers import LivePreviewMixin, debounced, robust_limits, show_layer_steps, viewer_camera, visible_region
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -230,16 +231,17 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
             on_returned=lambda out: self._show_preview(layer, *out, method, reg),
             on_finished=self._preview_done)
 
-    def _show_preview(self, layer, out: np.ndarray, rows: slice, cols: slice, method: str, reg: float) -> None:
+    def _show_preview(self, layer, out: np.ndarray, rows: slice, cols: slice, method: str,
+                      reg: float) -> Iterator[None]:
         if not self._live.value or layer is not self._image.value:
             return  # preview turned off, or another image chosen, while it computed
         scale = np.asarray(layer.scale[-2:], float)
         translate = np.asarray(layer.translate[-2:], float) + scale * (rows.start, cols.start)
         limits = layer.contrast_limits if not getattr(layer, "rgb", False) else None
         self._preview_layer = f"{layer.name} deconvolved (preview)"
-        show_layer(self._viewer, out, self._preview_layer, "image",
-                   rgb=out.ndim == 3, scale=tuple(scale), translate=tuple(translate),
-                   **({"contrast_limits": limits} if limits is not None else {}))
+        yield from show_layer_steps(self._viewer, out, self._preview_layer, "image",
+                                    rgb=out.ndim == 3, scale=tuple(scale), translate=tuple(translate),
+                                    **({"contrast_limits": limits} if limits is not None else {}))
         self.last_preview = {"rows": rows, "cols": cols, "method": PREVIEW_METHOD[method], "reg": reg}
         self._readout.value = (f"preview {cols.stop - cols.start}x{rows.stop - rows.start} px, "
                                f"{PREVIEW_METHOD[method]}, reg {reg:.3g}")
@@ -266,13 +268,13 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         self._job.cancel()
 
     def _show_full(self, layer, out: np.ndarray, limits: tuple[float, float], input_range: tuple[float, float],
-                   out_range: tuple[float, float], params: DeconvolutionParams) -> None:
+                   out_range: tuple[float, float], params: DeconvolutionParams) -> Iterator[None]:
         """The result with display limits from its own values, and a warning when they leave
         the input's range (ringing or over-sharpening: try a larger regularisation)."""
         self.result = out
-        show_layer(self._viewer, out, f"{layer.name} deconvolved", "image", rgb=out.ndim == 3,
-                   scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]),
-                   **({} if out.ndim == 3 else {"contrast_limits": limits}))
+        yield from show_layer_steps(self._viewer, out, f"{layer.name} deconvolved", "image", rgb=out.ndim == 3,
+                                    scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]),
+                                    **({} if out.ndim == 3 else {"contrast_limits": limits}))
         (in_lo, in_hi), (out_lo, out_hi) = input_range, out_range
         span = max(in_hi - in_lo, 1e-12)
         text = (f"deconvolved with {params.method}, reg {float(params.reg):.3g}; values {out_lo:.4g} to "

@@ -29,7 +29,7 @@ from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker
-from ._layers import remove_layer, reset_choices, same_geometry, show_layer, single_channel_layers
+from ._layers import remove_layer, reset_choices, same_geometry, show_layer, show_layer_steps, single_channel_layers
 
 if TYPE_CHECKING:
     import napari
@@ -197,7 +197,8 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
     def _show_steps(self, layer, result: DiagnosisResult,
                     binned: dict[str, np.ndarray] | None = None) -> Iterator[None]:
         """Show a diagnosis result one layer per event-loop turn (each new layer costs napari
-        0.1-0.4 s on the GUI thread; six at once froze the viewer for over a second)."""
+        0.1-0.4 s on the GUI thread; six at once froze the viewer for over a second); a new
+        layer shown is added hidden and shown at the next turn (:func:`show_layer_steps`)."""
         self.result = result
         binned = binned if binned is not None else binned_residual_maps(result)
         scale = np.asarray(layer.scale[-2:], float)
@@ -216,25 +217,32 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
             show_layer(self._viewer, z, f"residual z ({stage})", "image", colormap="bwr", contrast_limits=Z_LIMITS,
                        scale=z_scale, translate=tuple(np.asarray(z_translate) + shift), visible=False)
             yield
-            show_layer(self._viewer, binned[stage], f"residual z {block}x{block} ({stage})", "image", colormap="bwr",
-                       contrast_limits=BINNED_Z_LIMITS, scale=binned_scale,
-                       translate=tuple(np.asarray(binned_translate) + shift), visible=True)
+            yield from show_layer_steps(self._viewer, binned[stage], f"residual z {block}x{block} ({stage})", "image",
+                                        colormap="bwr", contrast_limits=BINNED_Z_LIMITS, scale=binned_scale,
+                                        translate=tuple(np.asarray(binned_translate) + shift), visible=True)
             yield
         top_left = np.asarray(layer.translate[-2:], float) - scale * 0.5
         added = ", ".join(term.effect.replace("_", " ") for term in result.added) or "nothing found"
-        self._show_map_labels(np.array([top_left, top_left + beside]), width,
-                              ["before (scene as given)", f"after (+ {added})"])
+        new = self._show_map_labels(np.array([top_left, top_left + beside]), width,
+                                    ["before (scene as given)", f"after (+ {added})"])
         yield
+        if new is not None:
+            new.visible = True
+            yield
         rectangles = [np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float) - 0.5
                       for r0, c0, r1, c1 in result.regions]
-        self._show_regions(rectangles, layer)
+        new = self._show_regions(rectangles, layer)
         yield
+        if new is not None:
+            new.visible = True
+            yield
         self._readout.value = summary_text(result)
         self._write.enabled = True
 
     # The labels and regions layers are updated in place when they exist: napari removes a
-    # layer with a full garbage collection on the GUI thread.
-    def _show_map_labels(self, positions: np.ndarray, width: float, texts: list[str]) -> None:
+    # layer with a full garbage collection on the GUI thread. A new one is added hidden and
+    # returned, to be shown at the next event-loop turn (its first draw is a turn's work).
+    def _show_map_labels(self, positions: np.ndarray, width: float, texts: list[str]):
         from napari.layers import Points
 
         translation = [-0.1 * width, 0.0]
@@ -243,26 +251,29 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
             existing.data = positions
             existing.features = {"what": texts}
             existing.text.translation = np.asarray(translation)
-            return
+            return None
         remove_layer(self._viewer, MAP_LABELS)
-        self._viewer.add_points(positions, name=MAP_LABELS, size=0, features={"what": texts},
-                                text={"string": "{what}", "color": "yellow", "size": 10, "anchor": "lower_left",
-                                      "translation": translation})
+        return self._viewer.add_points(positions, name=MAP_LABELS, size=0, features={"what": texts},
+                                       text={"string": "{what}", "color": "yellow", "size": 10,
+                                             "anchor": "lower_left", "translation": translation},
+                                       visible=False)
 
-    def _show_regions(self, rectangles: list[np.ndarray], layer) -> None:
+    def _show_regions(self, rectangles: list[np.ndarray], layer):
         from napari.layers import Shapes
 
         name, geometry = "mismatch regions", same_geometry(layer)
         existing = self._viewer.layers[name] if name in self._viewer.layers else None
+        new = None
         if not isinstance(existing, Shapes):
             remove_layer(self._viewer, name)
             if not rectangles:
-                return
-            existing = self._viewer.add_shapes(name=name, **geometry)
+                return None
+            existing = new = self._viewer.add_shapes(name=name, visible=False, **geometry)
         existing.data = []
         if rectangles:
             existing.add_rectangles(rectangles, edge_color="yellow", face_color="transparent", edge_width=2)
         existing.scale, existing.translate = geometry["scale"], geometry["translate"]
+        return new
 
     @guarded("diagnosis report")
     def write(self):

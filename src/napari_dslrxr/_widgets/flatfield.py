@@ -9,6 +9,7 @@ in a thread worker); "Apply" does the same on demand.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -21,7 +22,7 @@ from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_f
 from ..core.io import read_image
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, notify_error, readout_label, run_in_worker
-from ._layers import debounced, remove_layer, robust_limits, same_geometry, show_layer
+from ._layers import debounced, remove_layer, robust_limits, same_geometry, show_layer, show_layer_steps
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -177,12 +178,13 @@ class FlatFieldWidget(Container):
                              panel=self._job, readout=self._readout)
 
     def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int, tuple[float, float]],
-              preview: bool) -> None:
+              preview: bool) -> Iterator[None]:
+        """Show the result (a new layer over two event-loop turns, :func:`show_layer_steps`)."""
         corrected, cleaned, limits = out
         if preview and not self._preview.value:
             return  # turned off while it computed
         name = f"{layer.name} flat-fielded" + (" (preview)" if preview else "")
-        show_layer(self._viewer, corrected, name, "image",
+        yield from show_layer_steps(self._viewer, corrected, name, "image",
                    rgb=bool(getattr(layer, "rgb", False)) and corrected.ndim == 3, contrast_limits=limits,
                    **same_geometry(layer))
         if preview:

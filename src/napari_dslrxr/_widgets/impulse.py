@@ -22,7 +22,7 @@ from ..core.errors import ParameterError
 from ..core.stages.impulse import ImpulseParams, ImpulseResult, remove_impulses
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker
-from ._layers import robust_limits, same_geometry, show_layer
+from ._layers import robust_limits, same_geometry, show_layer_steps
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -141,15 +141,17 @@ class ImpulseWidget(Container):
 
     def _show_steps(self, layer: napari.layers.Image, result: ImpulseResult, limits: tuple[float, float],
                     masks: dict[str, np.ndarray], summary: str) -> Iterator[None]:
-        """Show the result one layer per event-loop turn (each new layer costs napari
-        0.1-0.2 s on the GUI thread)."""
+        """Show the result one layer per event-loop turn, each new one over two turns
+        (:func:`show_layer_steps`: napari sets a new layer up, then draws it first, on the GUI
+        thread)."""
         self.result = result
         geometry = same_geometry(layer)
-        show_layer(self._viewer, result.image, f"{layer.name} cleaned", "image",
-                   rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, **geometry)
+        yield from show_layer_steps(self._viewer, result.image, f"{layer.name} cleaned", "image",
+                                    rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, **geometry)
         for name, mask in masks.items():
             yield
-            show_layer(self._viewer, mask, f"{layer.name} pulses {name}", "image", colormap=pulse_colormap(name),
-                       contrast_limits=(0.0, 1.0), opacity=0.8, blending="translucent", **geometry)
+            yield from show_layer_steps(self._viewer, mask, f"{layer.name} pulses {name}", "image",
+                                        colormap=pulse_colormap(name), contrast_limits=(0.0, 1.0), opacity=0.8,
+                                        blending="translucent", **geometry)
         yield
         self._readout.value = summary

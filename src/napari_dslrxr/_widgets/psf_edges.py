@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -29,7 +29,7 @@ from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker
-from ._layers import show_layer
+from ._layers import finish_steps, show_layer_steps
 from ._plots import ShownFigureMixin, render_figure, worker_plot
 
 if TYPE_CHECKING:
@@ -294,13 +294,18 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
         if plot is not None:
             self._plot.show(*plot)
         yield
-        self.show_kernel(model, kernel, geometry_mm)
+        yield from self._kernel_steps(model, kernel, geometry_mm)
 
     def show_kernel(self, model: PSFModel, kernel: np.ndarray | None = None,
                     geometry_mm: tuple[float, float] | None = None) -> napari.layers.Image:
         """The kernel at the chosen image's geometry, beside that image (``"PSF kernel"``);
         ``kernel``: that kernel when computed already (off the GUI thread) for ``geometry_mm``
         (SOD, SDD; default: the widget's)."""
+        return finish_steps(self._kernel_steps(model, kernel, geometry_mm))
+
+    def _kernel_steps(self, model: PSFModel, kernel: np.ndarray | None,
+                      geometry_mm: tuple[float, float] | None) -> Generator[None, None, napari.layers.Image]:
+        """:meth:`show_kernel` over event-loop turns (:func:`show_layer_steps`)."""
         image = self._image.value
         sod_mm, sdd_mm = geometry_mm or (float(self._sod.value), float(self._sdd.value))
         if kernel is None:
@@ -309,9 +314,10 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
         if image is not None:
             scale = tuple(np.asarray(image.scale[-2:], float))
             translate = tuple(np.asarray(image.translate[-2:], float) + np.asarray(scale) * (0, np.shape(image.data)[1] + 8))
-        layer = show_layer(self._viewer, kernel, "PSF kernel", "image", colormap="magma", scale=scale,
-                           translate=translate, contrast_limits=(0.0, float(kernel.max())))
-        layer.gamma = 0.4  # show the tail
+        layer = yield from show_layer_steps(self._viewer, kernel, "PSF kernel", "image", colormap="magma",
+                                            scale=scale, translate=translate,
+                                            contrast_limits=(0.0, float(kernel.max())), gamma=0.4)
+        layer.gamma = 0.4  # show the tail (also when an existing layer is updated)
         layer.metadata.update({SOD_KEY: sod_mm, SDD_KEY: sdd_mm,
                                "psf": model.to_dict()})
         return layer
