@@ -136,20 +136,28 @@ def rgb_thumbnail_from_contrast_limits(layer: napari.layers.Image) -> None:
 
     napari makes a colour layer's thumbnail from the raw values as if they were 0-1 (or
     0-255), so a layer of camera counts shows an all-white thumbnail in the layer list
-    although the canvas, which applies the contrast limits, is right. The layer's thumbnail
-    update is replaced (on this layer only) by a subsample scaled by the contrast limits.
+    although the canvas, which applies the contrast limits, is right. Whenever napari sets
+    the thumbnail (public ``events.thumbnail``), it is replaced by a subsample of the data
+    scaled by the contrast limits (32 x 32 pixels: negligible work).
     """
+    replacing = [False]
 
-    def update() -> None:
+    def replace(_event: Any = None) -> None:
+        if replacing[0]:
+            return  # our own assignment's event
         data = np.asarray(layer.data)
         step = max(1, int(np.ceil(max(data.shape[:2]) / 32)))
         low, high = (float(v) for v in layer.contrast_limits)
         sample = (data[::step, ::step, :3].astype(np.float32) - low) / max(high - low, 1e-12)
         alpha = np.full(sample.shape[:2] + (1,), float(layer.opacity), np.float32)
-        layer.thumbnail = np.concatenate([np.clip(sample, 0.0, 1.0) ** float(layer.gamma), alpha], axis=2)
+        replacing[0] = True
+        try:
+            layer.thumbnail = np.concatenate([np.clip(sample, 0.0, 1.0) ** float(layer.gamma), alpha], axis=2)
+        finally:
+            replacing[0] = False
 
-    layer._update_thumbnail = update  # napari's method for this layer; called on every refresh
-    update()
+    layer.events.thumbnail.connect(replace)
+    replace()
 
 
 def show_layer_steps(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: str = "image",
