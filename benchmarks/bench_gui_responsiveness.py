@@ -68,7 +68,7 @@ class _WhereBlocked:
         self._path = path
         self._gui = threading.get_ident()
         self._samples: collections.deque = collections.deque(maxlen=200_000)
-        self._gaps: list[tuple[float, float]] = []
+        self._gaps: list[tuple[float, float, float]] = []  # start, end, GUI-thread CPU seconds
         self._marks: list[tuple[float, str]] = []
         self._stop = threading.Event()
         # Garbage collections (start, end, generation, on the GUI thread): napari collects in
@@ -79,6 +79,7 @@ class _WhereBlocked:
         self._thread = threading.Thread(target=self._sample, daemon=True)
         self._thread.start()
         self._last = time.perf_counter()
+        self._last_cpu = time.thread_time()
         self._timer = QTimer()
         self._timer.setInterval(5)
         self._timer.timeout.connect(self._tick)
@@ -108,10 +109,10 @@ class _WhereBlocked:
                                       threading.get_ident() == self._gui))
 
     def _tick(self) -> None:
-        now = time.perf_counter()
+        now, cpu = time.perf_counter(), time.thread_time()
         if now - self._last > WHERE_AFTER_S:
-            self._gaps.append((self._last, now))
-        self._last = now
+            self._gaps.append((self._last, now, cpu - self._last_cpu))
+        self._last, self._last_cpu = now, cpu
 
     def mark(self, text: str) -> None:
         self._marks.append((time.perf_counter(), text))
@@ -134,9 +135,10 @@ class _WhereBlocked:
                         if lines != after.get(name):
                             out.write(f"    [{name}] before: " + " < ".join(lines[:8]) + "\n")
                             out.write(f"    [{name}] after:  " + " < ".join(after.get(name, [])[:8]) + "\n")
-            for start, end in self._gaps:
+            for start, end, cpu in self._gaps:
                 mark = [text for t, text in self._marks if t <= start]
-                out.write(f"=== GUI blocked {1000 * (end - start):.0f} ms during {mark[-1] if mark else '?'}\n")
+                out.write(f"=== GUI blocked {1000 * (end - start):.0f} ms ({1000 * cpu:.0f} ms GUI-thread CPU) "
+                          f"during {mark[-1] if mark else '?'}\n")
                 for c0, c1, generation, on_gui in self._collections:
                     if c1 > start and c0 < end:
                         out.write(f"  garbage collection gen {generation} {1000 * (c1 - c0):.0f} ms at "
