@@ -156,6 +156,18 @@ def _may_hold_blades(display_oriented: np.ndarray, mask: np.ndarray, factor: flo
     return False
 
 
+def _half_plane(shape: tuple[int, int], a: np.ndarray, b: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """The pixels on the side of the line through ``a`` and ``b`` (x, y) where ``towards`` lies."""
+    h, w = shape
+    direction = (b - a) / max(float(np.hypot(*(b - a))), 1e-9)
+    normal = np.array([-direction[1], direction[0]])
+    if normal @ (towards - a) < 0:
+        normal = -normal
+    far = 2.0 * float(np.hypot(h, w))  # beyond the frame on every side
+    return polygon_mask(shape, np.array([a - far * direction, b + far * direction,
+                                         b + far * direction + far * normal, a - far * direction + far * normal]))
+
+
 def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region, params: PipelineParams,
                       results: dict) -> tuple[np.ndarray, Region]:
     """Collimator blades on a camera frame: leave the unexposed bands out of the region.
@@ -194,13 +206,30 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     # of the field, and get less than e^-1 (37 %) of the field's median light (a uniform stretch
     # of soft tissue at the frame's side, or the vignetting of a frame without a flat, does not)
     sub = attenuation[::step, ::step] if params.output.polarity == "bone_white" else -attenuation[::step, ::step]
-    band_level = float(np.median(sub[beyond]))
     field_mid, field_top = (float(v) for v in np.percentile(sub[inside], [50, 95]))
-    if band_level < field_top or abs(band_level - field_mid) < 1.0:
+    # each blade on its own: one real blade's band must not carry a wrong edge found in the
+    # anatomy on another side (the lateral chest wall taken for a blade blanked 10 % of a chest)
+    blades, refused = [], 0
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
+        side_band = beyond & ~_half_plane(beyond.shape, a / step, b / step, polygon.mean(axis=0) / step)
+        if np.count_nonzero(side_band) < 16:
+            continue  # an open side (on the frame's border): no blade there
+        band_level = float(np.median(sub[side_band]))
+        if band_level < field_top or abs(band_level - field_mid) < 1.0:
+            refused += 1
+        else:
+            blades.append((a, b))
+    if not blades:
         results["collimation"]["rejected"] = ("the band beyond the edges is not darker than 95 % of the field "
                                               "or gets more than 37 % of its median light")
         return mask, region
-    results["collimation"] = {"detected": True, "polygon_xy": field.polygon_xy.round(2).tolist()}
+    if refused:
+        # the field between the blades that passed (a half-plane per blade, the others left open)
+        centre = polygon.mean(axis=0)
+        field_mask = np.logical_and.reduce([_half_plane((h, w), a, b, centre) for a, b in blades])
+        combined = mask & field_mask
+    results["collimation"] = {"detected": True, "polygon_xy": field.polygon_xy.round(2).tolist(),
+                              "blades": len(blades), "refused_edges": refused}
     region = Region(combined, region.polygon_xy, region.detected, {**region.evidence, "collimation": True})
     results["region"]["area_fraction"] = float(combined.mean())
     return combined, region

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from napari_dslrxr.core.errors import ParameterError
-from napari_dslrxr.core.stages.region import RegionParams, order_corners, rectify, voi_window
+from napari_dslrxr.core.stages.region import RegionParams, order_corners, polygon_mask, rectify, voi_window
 from napari_dslrxr.core.stages.screen import detect_screen
 
 
@@ -258,3 +258,29 @@ def test_no_screen_border_falls_back_to_the_area_the_flat_saw_exposed(rng):
     assert region.evidence["flat_exposed_fraction"] == pytest.approx(screen.mean(), abs=0.03)
     whole = detect_screen(frame, illumination=np.ones((h, w), np.float32) * vignetting)
     assert whole.mask.all() and "flat_exposed_fraction" not in whole.evidence
+
+
+def test_a_dark_area_the_flat_saw_exposed_is_not_the_room(rng):
+    """A dense object at the frame's side (the camera framed part of the screen) is as dark as
+    a room and has a straight, strong step: on the image alone it passes for the screen's edge
+    and blanks what lies beyond. The flat frame saw that area lit, so it is no surround of a
+    screen: the whole frame stays the region. A screen whose surround the flat saw dark is
+    still found."""
+    h, w = 180, 270
+    yy, xx = np.mgrid[0:h, 0:w]
+    vignetting = (1.0 / (1.0 + 0.4 * ((xx - 135) ** 2 + (yy - 90) ** 2) / 160.0**2) ** 2).astype(np.float32)
+    dense = xx > 200 + 0.05 * (yy - 90)  # 2 % transmission, as dark as a room lit at 2 %
+    transmission = np.where(dense, 0.02, 0.6 + 0.3 * np.sin(xx / 15.0) * np.cos(yy / 20.0))
+    frame = (rng.poisson(3000.0 * vignetting * transmission) + rng.normal(0, 3.0, (h, w))).astype(np.float32)
+    corrected = frame / vignetting
+    alone = detect_screen(corrected)
+    assert alone.detected and not alone.mask[dense].any()  # the image alone is fooled
+    region = detect_screen(corrected, illumination=vignetting)
+    assert not region.detected and region.mask.all()
+    assert "flat frame saw" in region.evidence["reason"] and region.evidence["flat_lit_surround"] > 0.9
+    # a screen in a dark room: the flat is dark around it too, and the screen is accepted
+    corners = np.array([[50.0, 30.0], [225.0, 40.0], [215.0, 150.0], [45.0, 140.0]])
+    screen, _ = _quad_frame(rng, (h, w), corners)
+    flat_light = cv2.GaussianBlur(polygon_mask((h, w), corners).astype(np.float32), (0, 0), 1.0) + 0.004
+    found = detect_screen(screen / flat_light, illumination=flat_light)
+    assert found.detected and found.evidence["flat_lit_surround"] == 0.0

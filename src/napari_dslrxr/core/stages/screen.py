@@ -114,7 +114,7 @@ _BORDER_RUN_PX = 9
 
 
 def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
-                    params: RegionParams) -> dict:
+                    params: RegionParams, flat_lit: np.ndarray | None = None) -> dict:
     """How strongly the image supports a screen quadrilateral (all on the analysis copy).
 
     Along each side of the quadrilateral not lying on the frame's edge, at points every
@@ -194,12 +194,21 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
         edge_level = 0.5 * (surround_level + float(np.median(small[rim])))
         bright = float(np.mean(small[surround] > edge_level))
     evidence["bright_surround"] = None if bright is None else round(bright, 4)
+    lit = None
+    if flat_lit is not None and surround.any():
+        # the open beam reached the surround: what is dark there in the frame is an object in the
+        # beam (anatomy, shielding, blades), not the unexposed room beyond a screen's edge
+        lit = float(np.mean(flat_lit[surround]))
+        evidence["flat_lit_surround"] = round(lit, 4)
     reasons = []
     if coverage < params.min_border_coverage:
         reasons.append(f"border contrast >= {params.min_border_contrast_sigma:g} sigma on only "
                        f"{100 * coverage:.0f} % of its length (needs {100 * params.min_border_coverage:.0f} %)")
     if bright is not None and bright > params.max_bright_surround:
         reasons.append(f"{100 * bright:.1f} % of the surround is as bright as the screen's edge "
+                       f"(at most {100 * params.max_bright_surround:.1f} %)")
+    if lit is not None and lit > params.max_bright_surround:
+        reasons.append(f"the flat frame saw {100 * lit:.1f} % of the surround exposed "
                        f"(at most {100 * params.max_bright_surround:.1f} %)")
     evidence["accepted"] = not reasons
     if reasons:
@@ -297,7 +306,11 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
         return Region(polygon_mask((h, w), poly), poly, detected=False, evidence={"source": "user polygon"})
     if not params.enabled:
         return Region(np.ones((h, w), bool), whole, detected=False, evidence={"source": "detection disabled"})
-    small, exposed[0] = _light_seen(arr, illumination, params.analysis_size_px)
+    small, flat_level = _light_seen(arr, illumination, params.analysis_size_px)
+    flat_lit = None
+    if flat_level is not None:
+        exposed[0] = flat_exposed_area(flat_level)
+        flat_lit = flat_level > _FLAT_EXPOSED_FRACTION
     noise = _noise_map(small)
     small = cv2.GaussianBlur(small, (0, 0), 1.0)
     top = float(np.percentile(small, 99.5))
@@ -309,7 +322,7 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
     if hi - lo < 1e-6:
         return nothing("the frame is uniform")
     scaled = np.round((logged - lo) / (hi - lo) * 255).astype(np.uint8)
-    found = _best_candidate(small, scaled, noise, params)
+    found = _best_candidate(small, scaled, noise, params, flat_lit)
     if found is None:
         return nothing("no bright area")
     corners, evidence = found
@@ -338,21 +351,23 @@ def _light_seen(arr: np.ndarray, illumination: np.ndarray | None,
         # downsample first (area average), then sum the colour channels: no full-size copy
         return cv2.resize(a, size, interpolation=cv2.INTER_AREA) if factor > 1 else a.copy()
 
-    small, exposed = shrink(arr), None
+    small, flat_level = shrink(arr), None
     if illumination is not None:
         light = shrink(np.asarray(illumination))
         if light.ndim == 2 and small.ndim == 3:
             light = light[..., None]
-        small = small * light if light.shape[:2] == small.shape[:2] else small
         if light.shape[:2] == small.shape[:2]:
-            exposed = flat_exposed_area(light if light.ndim == 2 else light.sum(axis=2))
+            small = small * light
+            flat_light = light if light.ndim == 2 else light.sum(axis=2)
+            top = float(np.percentile(flat_light, 99.5))
+            flat_level = flat_light / top if top > 0 else None
     if small.ndim == 3:
         small = small.sum(axis=2)
-    return small, exposed
+    return small, flat_level
 
 
 def _best_candidate(small: np.ndarray, scaled: np.ndarray, noise: np.ndarray,
-                    params: RegionParams) -> tuple[np.ndarray, dict] | None:
+                    params: RegionParams, flat_lit: np.ndarray | None = None) -> tuple[np.ndarray, dict] | None:
     """Corners (small image's pixels) and evidence of the best screen candidate, or None.
 
     Two candidates: the bright class of a log-scale Otsu split, and everything above the dark
@@ -372,7 +387,7 @@ def _best_candidate(small: np.ndarray, scaled: np.ndarray, noise: np.ndarray,
         corners = _candidate_corners(small, scaled, threshold)
         if corners is None:
             continue
-        evidence = screen_evidence(small, noise, corners, params)
+        evidence = screen_evidence(small, noise, corners, params, flat_lit)
         area = cv2.contourArea(order_corners(corners).astype(np.float32))
         if first is None:
             first = (corners, evidence)
