@@ -168,8 +168,12 @@ def _dense_shield(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarra
     return mask.astype(bool)
 
 
-def make_scenario(seed: int, frame: tuple[int, int] = FRAME_SHAPE, *, family: str = "corpus") -> Scenario:
+def make_scenario(seed: int, frame: tuple[int, int] = FRAME_SHAPE, *, family: str = "corpus",
+                  illumination_pattern: bool = True) -> Scenario:
     """One randomised camera frame of real anatomy (deterministic per seed).
+
+    ``illumination_pattern=False``: the same frame (same anatomy, layout, noise draws) lit
+    evenly; the pattern is still drawn, so every other random choice stays the same.
 
     ``family="dense_area"``: the same frame with a large dense uniform area added over the
     anatomy (:func:`_dense_shield`: shielding, a cast or undetected blades, 25-45 % of the
@@ -236,6 +240,8 @@ def make_scenario(seed: int, frame: tuple[int, int] = FRAME_SHAPE, *, family: st
                           borderType=cv2.BORDER_CONSTANT, borderValue=1)
         anatomy &= inner.astype(bool)
     pattern = _flat_pattern(rng, frame)
+    if not illumination_pattern:
+        pattern = np.ones_like(pattern)
     transmission = np.where(screen, np.exp(-np.nan_to_num(attenuation, nan=0.0)), 0.0)
     # screen blur (the scintillator's light spread), a px or so
     transmission = cv2.GaussianBlur(transmission.astype(np.float32), (0, 0), rng.uniform(0.6, 1.5))
@@ -287,8 +293,8 @@ def evaluate(scenario: Scenario, result) -> dict:
     * ``polarity_r``: Pearson correlation of the display with the true attenuation over the
       anatomy (bone white: positive);
     * ``flat_left``: the share of the flat-field pattern left in the attenuation image: the
-      regression coefficient of its residual (after the best fit ``s a_true + c``) on
-      ``-log(pattern)``, over ``s`` (1 = uncorrected, 0 = gone).
+      coefficient of ``-log(pattern)`` in a joint fit ``s a_true + b (-log pattern) + c``,
+      over ``s`` (1 = uncorrected, 0 = gone).
     """
     anatomy = scenario.anatomy
     shown = anatomy & result.region.mask
@@ -312,24 +318,27 @@ def _masked_blur(values: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.nd
 def flat_pattern_left(attenuation: np.ndarray, scenario: Scenario, sigma_px: float = 6.0) -> float:
     """Share of the flat-field pattern left in an attenuation image (1 = uncorrected, 0 = gone).
 
-    The image is fitted as ``s a_true + c`` over the anatomy; the residual and ``-log(pattern)``
-    are low-passed inside the anatomy (Gaussian, ``sigma_px``; edges of the anatomy leave
-    zero-mean residuals that the low-pass cancels, a smooth illumination pattern stays) and
-    the residual's regression coefficient on the pattern, over ``s``, is returned.
+    An uncorrected illumination pattern ``P`` adds ``-log P`` to the attenuation, so the image
+    is modelled as ``y = s a_true + b (-log P) + c`` and fitted jointly, by least squares, over
+    the anatomy; ``b / s`` is returned. The image, the truth and the pattern are first
+    low-passed inside the anatomy (Gaussian, ``sigma_px``: pixel noise and the zero-mean
+    residuals at the anatomy's edges average out, a smooth pattern stays) and the comparison
+    is made away from the anatomy's outline. The fit is joint because a chest centred on the
+    screen correlates with the pattern (r up to 0.7): fitting the truth first lets it absorb
+    part of a real pattern, and leaves in its residual whatever the image's response to the
+    anatomy does not share with a straight line, both wrongly charged to the pattern
+    (docs/safety.md).
     """
     anatomy = scenario.anatomy
-    truth = scenario.attenuation[anatomy].astype(np.float64)
-    y = attenuation[anatomy].astype(np.float64)
-    design = np.column_stack([truth, np.ones_like(truth)])
-    (scale, offset), *_ = np.linalg.lstsq(design, y, rcond=None)
-    if abs(scale) < 1e-9:
-        return float("inf")
-    residual = np.zeros(anatomy.shape, np.float32)
-    residual[anatomy] = (y - scale * truth - offset) / scale
     core = cv2.erode(anatomy.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    res_low = _masked_blur(residual, anatomy, sigma_px)[core]
-    pattern_low = _masked_blur(-np.log(scenario.flat_pattern), anatomy, sigma_px)[core]
-    pattern_low = pattern_low - pattern_low.mean()
+    truth = np.nan_to_num(scenario.attenuation, nan=0.0)
+    columns = [_masked_blur(image, anatomy, sigma_px)[core].astype(np.float64)
+               for image in (attenuation, truth, -np.log(scenario.flat_pattern))]
+    y, truth_low, pattern_low = columns
     if pattern_low.std() < 1e-6:
         return 0.0
-    return float(abs(np.dot(res_low - res_low.mean(), pattern_low) / np.dot(pattern_low, pattern_low)))
+    design = np.column_stack([truth_low, pattern_low, np.ones_like(y)])
+    (scale, pattern_coef, _), *_ = np.linalg.lstsq(design, y, rcond=None)
+    if abs(scale) < 1e-9:
+        return float("inf")
+    return float(abs(pattern_coef / scale))

@@ -27,7 +27,7 @@ from .params import PipelineParams
 from .stages.collimation import detect_collimation
 from .stages.exposure_index import exposure_index_record, not_linear_record
 from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
-from .stages.region import Region, polygon_mask, rectify
+from .stages.region import Region, polygon_mask, rectify, shrink_polygon
 from .stages.screen import detect_screen
 
 #: Stage names, in the order their progress steps are yielded.
@@ -168,6 +168,43 @@ def _half_plane(shape: tuple[int, int], a: np.ndarray, b: np.ndarray, towards: n
                                          b + far * direction + far * normal, a - far * direction + far * normal]))
 
 
+def _blade_sides(sub: np.ndarray, inside: np.ndarray, beyond: np.ndarray, polygon: np.ndarray, step: int,
+                 dense_share: float, gap_px: float = 0.0) -> tuple[list, int]:
+    """The sides (a, b) of a field polygon (full-resolution x, y) whose band is a blade's shadow,
+    and how many sides with a band were refused.
+
+    Judged on the subsample ``sub`` (every ``step``-th pixel, bone white) with the field's
+    pixels ``inside`` and the bands' ``beyond``; each side's band (the part of ``beyond``
+    outside its line) on its own: at least ``dense_share`` of it attenuates more than 95 % of
+    the field, and its median gets less than e^-1 (37 %) of the field's median light. A side
+    with (almost) no band lies on the frame's border: no blade, neither kept nor refused. The
+    band starts ``gap_px`` (subsample pixels) beyond the line (the blade's penumbra).
+    """
+    field_mid, field_top = (float(v) for v in np.percentile(sub[inside], [50, 95]))
+    centre = polygon.mean(axis=0) / step
+    blades, refused = [], 0
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
+        a_sub, b_sub = a / step, b / step
+        direction = (b_sub - a_sub) / max(float(np.hypot(*(b_sub - a_sub))), 1e-9)
+        outward = np.array([-direction[1], direction[0]])
+        outward = -outward if outward @ (centre - a_sub) > 0 else outward
+        side_band = beyond & ~_half_plane(beyond.shape, a_sub + gap_px * outward, b_sub + gap_px * outward, centre)
+        if np.count_nonzero(side_band) < 16:
+            continue
+        values = sub[side_band]
+        dense = float(np.percentile(values, 100.0 * (1.0 - dense_share)))
+        if dense < field_top or abs(float(np.median(values)) - field_mid) < 1.0:
+            refused += 1
+        else:
+            blades.append((a, b))
+    return blades, refused
+
+
+def _between(blades: list, centre: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The pixels on the field's side of every blade line (a, b)."""
+    return np.logical_and.reduce([_half_plane(shape, a, b, centre) for a, b in blades])
+
+
 def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region, params: PipelineParams,
                       results: dict) -> tuple[np.ndarray, Region]:
     """Collimator blades on a camera frame: leave the unexposed bands out of the region.
@@ -188,6 +225,29 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     # and its band took the value-of-interest window). A 1 px Gaussian averages that noise down.
     display_oriented = cv2.GaussianBlur(display_oriented, (0, 0), 1.0)
     results["collimation"] = {"detected": False}
+    step = max(1, int(np.sqrt(attenuation.size / 1_000_000)))
+    sub = attenuation[::step, ::step] if params.output.polarity == "bone_white" else -attenuation[::step, ::step]
+    if region.evidence.get("field_edge") and "candidate_xy" in region.evidence:
+        # the screen step found a strong straight edge inside the exposed screen: a blade's only
+        # when nearly all of the band beyond it (98 %) is denser than 95 % of the field, so at
+        # most a trace of anatomy cut by the edge goes with it
+        polygon = shrink_polygon(np.asarray(region.evidence["candidate_xy"], np.float64),
+                                 params.region.shrink_fraction)
+        field_mask = polygon_mask((h, w), polygon)
+        inside, beyond = (mask & field_mask)[::step, ::step], (mask & ~field_mask)[::step, ::step]
+        # away from the region's own edge (the screen's soft rim and the room beyond it)
+        rim = max(2, round(0.015 * min(beyond.shape)))
+        beyond &= cv2.erode(mask[::step, ::step].astype(np.uint8), np.ones((2 * rim + 1,) * 2, np.uint8)).astype(bool)
+        if inside.any() and beyond.any():
+            blades, refused = _blade_sides(sub, inside, beyond, polygon, step, dense_share=0.98, gap_px=rim)
+            if blades:
+                combined = mask & _between(blades, polygon.mean(axis=0), (h, w))
+                results["collimation"] = {"detected": True, "source": "screen candidate",
+                                          "polygon_xy": polygon.round(2).tolist(), "blades": len(blades),
+                                          "refused_edges": refused}
+                region = Region(combined, region.polygon_xy, region.detected, {**region.evidence, "collimation": True})
+                results["region"]["area_fraction"] = float(combined.mean())
+                return combined, region
     if not _may_hold_blades(display_oriented, mask, factor):
         return mask, region
     inset = params.region.collimation_inset_px * min(1.0, max(h, w) / 2000.0) / factor
@@ -198,36 +258,20 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     field = Region(polygon_mask((h, w), polygon), polygon) if factor > 1 else found
     combined = mask & field.mask
     band = mask & ~field.mask
-    step = max(1, int(np.sqrt(attenuation.size / 1_000_000)))
     inside, beyond = combined[::step, ::step], band[::step, ::step]
     if not inside.any() or not beyond.any():
         return mask, region
     # Behind a blade the screen gets scatter only: the band must attenuate more than almost all
     # of the field, and get less than e^-1 (37 %) of the field's median light (a uniform stretch
     # of soft tissue at the frame's side, or the vignetting of a frame without a flat, does not)
-    sub = attenuation[::step, ::step] if params.output.polarity == "bone_white" else -attenuation[::step, ::step]
-    field_mid, field_top = (float(v) for v in np.percentile(sub[inside], [50, 95]))
-    # each blade on its own: one real blade's band must not carry a wrong edge found in the
-    # anatomy on another side (the lateral chest wall taken for a blade blanked 10 % of a chest)
-    blades, refused = [], 0
-    for a, b in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
-        side_band = beyond & ~_half_plane(beyond.shape, a / step, b / step, polygon.mean(axis=0) / step)
-        if np.count_nonzero(side_band) < 16:
-            continue  # an open side (on the frame's border): no blade there
-        band_level = float(np.median(sub[side_band]))
-        if band_level < field_top or abs(band_level - field_mid) < 1.0:
-            refused += 1
-        else:
-            blades.append((a, b))
+    blades, refused = _blade_sides(sub, inside, beyond, polygon, step, dense_share=0.5)
     if not blades:
         results["collimation"]["rejected"] = ("the band beyond the edges is not darker than 95 % of the field "
                                               "or gets more than 37 % of its median light")
         return mask, region
     if refused:
         # the field between the blades that passed (a half-plane per blade, the others left open)
-        centre = polygon.mean(axis=0)
-        field_mask = np.logical_and.reduce([_half_plane((h, w), a, b, centre) for a, b in blades])
-        combined = mask & field_mask
+        combined = mask & _between(blades, polygon.mean(axis=0), (h, w))
     results["collimation"] = {"detected": True, "polygon_xy": field.polygon_xy.round(2).tolist(),
                               "blades": len(blades), "refused_edges": refused}
     region = Region(combined, region.polygon_xy, region.detected, {**region.evidence, "collimation": True})

@@ -210,6 +210,10 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
     if lit is not None and lit > params.max_bright_surround:
         reasons.append(f"the flat frame saw {100 * lit:.1f} % of the surround exposed "
                        f"(at most {100 * params.max_bright_surround:.1f} %)")
+    if len(reasons) == 1 and lit is not None and lit > params.max_bright_surround:
+        # a strong straight step down to a dark level inside the exposed screen: the edge of a
+        # collimated field, or of a dense object; the collimation step tells them apart
+        evidence["field_edge"] = True
     evidence["accepted"] = not reasons
     if reasons:
         evidence["reason"] = "; ".join(reasons)
