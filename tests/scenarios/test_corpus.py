@@ -159,16 +159,14 @@ def test_corpus_spatial_rule_held_out_seeds():
     _check(SPATIAL_RULE_HELD_OUT_SEEDS)
 
 
-@pytest.mark.skipif(os.environ.get("DSLRXR_HELD_OUT") != "1", reason="held-out seeds: set DSLRXR_HELD_OUT=1")
-def test_dense_area_held_out_seeds():
-    _check(DENSE_AREA_HELD_OUT_SEEDS, "dense_area")
+#: Further seed sets run only with ``DSLRXR_HELD_OUT=1`` (held out, then run once before closing).
+HELD_OUT_SETS = {"dense_area_spatial_rule": (DENSE_AREA_HELD_OUT_SEEDS, "dense_area"),
+                 "corpus_flat_surround": (FLAT_SURROUND_HELD_OUT_SEEDS, "corpus"),
+                 "dense_area_flat_surround": (FLAT_SURROUND_DENSE_HELD_OUT_SEEDS, "dense_area")}
 
 
 @pytest.mark.skipif(os.environ.get("DSLRXR_HELD_OUT") != "1", reason="held-out seeds: set DSLRXR_HELD_OUT=1")
-def test_corpus_flat_surround_held_out_seeds():
-    _check(FLAT_SURROUND_HELD_OUT_SEEDS)
-
-
-@pytest.mark.skipif(os.environ.get("DSLRXR_HELD_OUT") != "1", reason="held-out seeds: set DSLRXR_HELD_OUT=1")
-def test_dense_area_flat_surround_held_out_seeds():
-    _check(FLAT_SURROUND_DENSE_HELD_OUT_SEEDS, "dense_area")
+@pytest.mark.parametrize("name", list(HELD_OUT_SETS))
+def test_held_out_sets(name):
+    seeds, family = HELD_OUT_SETS[name]
+    _check(seeds, family)
