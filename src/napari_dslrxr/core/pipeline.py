@@ -27,7 +27,7 @@ from .params import PipelineParams
 from .stages.collimation import detect_collimation
 from .stages.exposure_index import exposure_index_record, not_linear_record
 from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
-from .stages.region import Region, polygon_mask, rectify, shrink_polygon
+from .stages.region import Region, polygon_mask, rectify
 from .stages.screen import detect_screen
 
 #: Stage names, in the order their progress steps are yielded.
@@ -168,8 +168,21 @@ def _half_plane(shape: tuple[int, int], a: np.ndarray, b: np.ndarray, towards: n
                                          b + far * direction + far * normal, a - far * direction + far * normal]))
 
 
+def _outward(a: np.ndarray, b: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The unit normal of the line through ``a`` and ``b`` pointing away from ``centre``."""
+    direction = (b - a) / max(float(np.hypot(*(b - a))), 1e-9)
+    normal = np.array([-direction[1], direction[0]])
+    return -normal if normal @ (centre - a) > 0 else normal
+
+
+def _beyond_side(shape: tuple[int, int], a: np.ndarray, b: np.ndarray, outward: np.ndarray) -> np.ndarray:
+    """The pixels beyond the segment a-b (x, y), within its extent, to the frame's border."""
+    far = 2.0 * float(np.hypot(*shape))
+    return polygon_mask(shape, np.array([a, b, b + far * outward, a + far * outward]))
+
+
 def _blade_sides(sub: np.ndarray, inside: np.ndarray, beyond: np.ndarray, polygon: np.ndarray, step: int,
-                 dense_share: float, gap_px: float = 0.0) -> tuple[list, int]:
+                 dense_share: float, gap_px: float = 0.0, extent_only: bool = False) -> tuple[list, int]:
     """The sides (a, b) of a field polygon (full-resolution x, y) whose band is a blade's shadow,
     and how many sides with a band were refused.
 
@@ -178,17 +191,18 @@ def _blade_sides(sub: np.ndarray, inside: np.ndarray, beyond: np.ndarray, polygo
     outside its line) on its own: at least ``dense_share`` of it attenuates more than 95 % of
     the field, and its median gets less than e^-1 (37 %) of the field's median light. A side
     with (almost) no band lies on the frame's border: no blade, neither kept nor refused. The
-    band starts ``gap_px`` (subsample pixels) beyond the line (the blade's penumbra).
+    band starts ``gap_px`` (subsample pixels) beyond the line (the blade's penumbra); with
+    ``extent_only`` it is only what lies beyond the side itself, not beyond its extension.
     """
     field_mid, field_top = (float(v) for v in np.percentile(sub[inside], [50, 95]))
     centre = polygon.mean(axis=0) / step
     blades, refused = [], 0
     for a, b in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
         a_sub, b_sub = a / step, b / step
-        direction = (b_sub - a_sub) / max(float(np.hypot(*(b_sub - a_sub))), 1e-9)
-        outward = np.array([-direction[1], direction[0]])
-        outward = -outward if outward @ (centre - a_sub) > 0 else outward
-        side_band = beyond & ~_half_plane(beyond.shape, a_sub + gap_px * outward, b_sub + gap_px * outward, centre)
+        outward = _outward(a_sub, b_sub, centre)
+        a_sub, b_sub = a_sub + gap_px * outward, b_sub + gap_px * outward
+        side_band = beyond & (_beyond_side(beyond.shape, a_sub, b_sub, outward) if extent_only
+                              else ~_half_plane(beyond.shape, a_sub, b_sub, centre))
         if np.count_nonzero(side_band) < 16:
             continue
         values = sub[side_band]
@@ -231,17 +245,31 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
         # the screen step found a strong straight edge inside the exposed screen: a blade's only
         # when nearly all of the band beyond it (98 %) is denser than 95 % of the field, so at
         # most a trace of anatomy cut by the edge goes with it
-        polygon = shrink_polygon(np.asarray(region.evidence["candidate_xy"], np.float64),
-                                 params.region.shrink_fraction)
+        polygon = np.asarray(region.evidence["candidate_xy"], np.float64)  # the edge's 50 % points
         field_mask = polygon_mask((h, w), polygon)
         inside, beyond = (mask & field_mask)[::step, ::step], (mask & ~field_mask)[::step, ::step]
         # away from the region's own edge (the screen's soft rim and the room beyond it)
         rim = max(2, round(0.015 * min(beyond.shape)))
         beyond &= cv2.erode(mask[::step, ::step].astype(np.uint8), np.ones((2 * rim + 1,) * 2, np.uint8)).astype(bool)
         if inside.any() and beyond.any():
-            blades, refused = _blade_sides(sub, inside, beyond, polygon, step, dense_share=0.98, gap_px=rim)
+            # on the noise averaged down (1 px Gaussian, as for the search below): a starved
+            # band's log is noise, and its lowest 2 % would reach into the field's levels
+            blades, refused = _blade_sides(cv2.GaussianBlur(sub, (0, 0), 1.0), inside, beyond, polygon, step,
+                                           dense_share=0.98, gap_px=rim, extent_only=True)
             if blades:
-                combined = mask & _between(blades, polygon.mean(axis=0), (h, w))
+                # what lies beyond each blade's own side, and beyond the corner two blades share
+                # (a side's extension may run into the anatomy: a four-corner fit of a field
+                # with a cut corner has a short side)
+                centre = polygon.mean(axis=0)
+                outward = [_outward(a, b, centre) for a, b in blades]
+                shadow = np.zeros((h, w), bool)
+                for (a, b), o in zip(blades, outward, strict=True):
+                    shadow |= _beyond_side((h, w), a, b, o)
+                for (_, b1), o1, (a2, _), o2 in zip(blades, outward, blades[1:] + blades[:1], outward[1:] + outward[:1],
+                                                     strict=True):
+                    if len(blades) > 1 and np.allclose(b1, a2):
+                        shadow |= _beyond_side((h, w), b1, b1 + 2.0 * float(np.hypot(h, w)) * o1, o2)
+                combined = mask & ~shadow
                 results["collimation"] = {"detected": True, "source": "screen candidate",
                                           "polygon_xy": polygon.round(2).tolist(), "blades": len(blades),
                                           "refused_edges": refused}

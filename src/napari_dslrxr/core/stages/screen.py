@@ -380,7 +380,8 @@ def _best_candidate(small: np.ndarray, scaled: np.ndarray, noise: np.ndarray,
     Two candidates: the bright class of a log-scale Otsu split, and everything above the dark
     class of a second split below it (when a large direct-exposure area takes the bright class,
     the screen is the union of the two brighter classes). The first accepted one wins, unless
-    the lower threshold adds a real area; with none accepted, the first candidate and why.
+    the lower threshold adds a real area; with none accepted, the first candidate and why (the
+    first that is a field's edge inside the exposed screen, when one is).
     """
     high, _ = cv2.threshold(scaled, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     thresholds = [high]
@@ -396,8 +397,8 @@ def _best_candidate(small: np.ndarray, scaled: np.ndarray, noise: np.ndarray,
             continue
         evidence = screen_evidence(small, noise, corners, params, flat_lit)
         area = cv2.contourArea(order_corners(corners).astype(np.float32))
-        if first is None:
-            first = (corners, evidence)
+        if first is None or (evidence.get("field_edge") and not first[1].get("field_edge")):
+            first = (corners, evidence)  # a field's edge is the better account of a refusal
         # the lower threshold wins only when it adds a real area (not just the blurred rim)
         if evidence["accepted"] and (best is None or area > 1.1 * best[2]):
             best = (corners, evidence, area)
