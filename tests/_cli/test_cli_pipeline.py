@@ -67,29 +67,33 @@ def test_jobs_give_identical_outputs(tmp_path, inputs):
         assert (tmp_path / "j1" / name).read_bytes() == (tmp_path / "j2" / name).read_bytes()
 
 
-def test_each_worker_prepares_the_flat_reference_once(tmp_path, inputs, monkeypatch):
-    """--jobs > 1: a worker process reads the flats and darks for its first file only."""
-    from napari_dslrxr._cli import pipeline as cli_pipeline
-    from napari_dslrxr.core import files as core_files
-    from napari_dslrxr.core.params import params_to_dict
+def test_pool_workers_map_the_reference_the_command_prepares_once(tmp_path, inputs, monkeypatch):
+    """--jobs 2: the command reads the flats and darks and prepares the reference once; its pool
+    workers (forked, so they count their reads in the same file) read none and map it; the
+    outputs are those of --jobs 1 and the shared reference folder is gone at the end."""
+    import os
 
-    reads = []
+    from napari_dslrxr.core import files as core_files
+
+    log = tmp_path / "reads.txt"
     real_load = core_files.load_frames
-    monkeypatch.setattr(core_files, "load_frames", lambda paths: reads.append(list(paths)) or real_load(paths))
-    monkeypatch.setattr(cli_pipeline, "_worker_references", None)
-    cli_pipeline._init_worker()  # what the pool runs in each new worker process
-    (tmp_path / "w").mkdir()
-    for shot in ("shot1", "shot2"):
-        job = {"input": str(inputs[shot]), "out_dir": str(tmp_path / "w"), "params": params_to_dict(PipelineParams()),
-               "flats": [str(inputs["flat"])], "darks": [str(inputs["dark"])], "psf": None, "sod": None,
-               "sdd": None, "patient": None}
-        name, ok, message, *_ = cli_pipeline._process_one_in_worker(job)
-        assert ok, message
-    assert reads == [[str(inputs["flat"])], [str(inputs["dark"])]]  # once, for the first file
-    assert len(cli_pipeline._worker_references) == 1
-    assert main(["run", str(inputs["shot2"]), "--flat", str(inputs["flat"]), "--dark", str(inputs["dark"]),
-                 "-o", str(tmp_path / "seq")]) == 0
-    assert (tmp_path / "w" / "shot2_dslrxr.tif").read_bytes() == (tmp_path / "seq" / "shot2_dslrxr.tif").read_bytes()
+
+    def counted(paths):
+        with open(log, "a") as f:
+            f.write(f"{os.getpid()} {' '.join(map(str, paths))}\n")
+        return real_load(paths)
+
+    monkeypatch.setattr(core_files, "load_frames", counted)
+    shots = [str(inputs["shot1"]), str(inputs["shot2"])]
+    common = [*shots, "--flat", str(inputs["flat"]), "--dark", str(inputs["dark"])]
+    assert main(["run", *common, "-o", str(tmp_path / "j2"), "--jobs", "2"]) == 0
+    reads = log.read_text().splitlines()
+    assert reads == [f"{os.getpid()} {inputs['flat']}", f"{os.getpid()} {inputs['dark']}"]
+    assert not [p.name for p in (tmp_path / "j2").iterdir() if p.name.startswith(".")]
+    monkeypatch.setattr(core_files, "load_frames", real_load)
+    assert main(["run", *common, "-o", str(tmp_path / "seq")]) == 0
+    for name in ("shot1_dslrxr.tif", "shot2_dslrxr.png"):
+        assert (tmp_path / "j2" / name).read_bytes() == (tmp_path / "seq" / name).read_bytes()
 
 
 def test_config_and_usage_errors(tmp_path, inputs, capsys):

@@ -317,7 +317,8 @@ def test_bad_or_unreachable_scheduler_is_one_line(tmp_path, small_batch, capsys,
 
 def test_a_worker_that_cannot_see_the_shared_reference_prepares_its_own(tmp_path, small_batch, monkeypatch):
     """A job whose shared reference folder this worker does not see (no shared file system):
-    the worker reads the reference files itself and writes the bytes of --jobs 1."""
+    the worker reads the reference files itself, without waiting for the folder, and writes the
+    bytes of --jobs 1."""
     from napari_dslrxr._cli import cluster as cli_cluster
     from napari_dslrxr.core import files as core_files
     from napari_dslrxr.core.params import PipelineParams, params_to_dict
@@ -331,54 +332,12 @@ def test_a_worker_that_cannot_see_the_shared_reference_prepares_its_own(tmp_path
     (tmp_path / "w").mkdir()
     job = {"input": str(shot), "out_dir": str(tmp_path / "w"), "params": params_to_dict(PipelineParams()),
            "flats": [str(flat)], "darks": [str(dark)], "psf": None, "sod": None, "sdd": None, "patient": {},
-           "shared_reference": {"key": ("elsewhere",), "folder": str(tmp_path / "not-mounted-here")}}
+           "shared_reference": str(tmp_path / "not-mounted-here" / ".dslrxr-reference-elsewhere-1-0123abcd")}
     name, ok, message, *_ = cli_cluster._run_on_worker(job)
     assert ok, message
     assert reads == [[str(flat)], [str(dark)]]
     assert main(["run", str(shot), "--flat", str(flat), "--dark", str(dark), "-o", str(tmp_path / "seq")]) == 0
     assert _images(tmp_path / "w") == _images(tmp_path / "seq")
-
-
-def test_the_shared_reference_is_the_one_run_file_prepares_and_is_removed(tmp_path, small_batch):
-    """The command's shared reference: the same arrays as run_file's own preparation, mapped
-    read-only; its folder is gone after the run, also after an error, and a folder left by a
-    command killed on this host is removed by the next run."""
-    import socket
-
-    import numpy as np
-
-    from napari_dslrxr._cli import cluster as cli_cluster
-    from napari_dslrxr.core.files import input_black_level, load_flat_reference, load_frames
-    from napari_dslrxr.core.params import PipelineParams, params_to_dict
-    from napari_dslrxr.core.stages.flatfield import prepare_flat_reference
-
-    out = tmp_path / "out"
-    out.mkdir()
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
-    stale = out / f"{cli_cluster.SHARED_REFERENCE_PREFIX}{socket.gethostname()}-{int(dead.stdout)}-0123abcd"
-    stale.mkdir()
-    (stale / "offset.npy").write_bytes(b"left by a killed run")
-    shot, flat, dark = small_batch["shots"][0], small_batch["flat"], small_batch["dark"]
-    job = {"input": str(shot), "out_dir": str(out), "params": params_to_dict(PipelineParams()),
-           "flats": [str(flat)], "darks": [str(dark)], "psf": None, "sod": None, "sdd": None, "patient": {}}
-    with cli_cluster.shared_reference([job]) as wait:
-        shared = wait()
-        assert not stale.exists()
-        mapped = load_flat_reference(shared["folder"])
-        params = PipelineParams()
-        frames = load_frames([flat])[0]
-        expected = prepare_flat_reference(frames.shape, flats=[frames], darks=load_frames([dark]),
-                                          black_level=input_black_level(shot, params), params=params.flatfield)
-        for name in ("offset", "denominator", "scale"):
-            assert np.array_equal(getattr(mapped, name), getattr(expected, name)), name
-        assert isinstance(mapped.denominator, np.memmap) and not mapped.denominator.flags.writeable
-        assert (mapped.n_flats, mapped.cleaned_pulses) == (expected.n_flats, expected.cleaned_pulses)
-        del mapped
-    assert not list(out.iterdir())
-    with pytest.raises(RuntimeError), cli_cluster.shared_reference([job]) as wait:
-        assert wait() is not None and len(list(out.iterdir())) == 1
-        raise RuntimeError("a failure while the batch runs")
-    assert not list(out.iterdir())
 
 
 @pytest.mark.slow

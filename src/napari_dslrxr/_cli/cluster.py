@@ -1,14 +1,11 @@
 """``dslrxr run --scheduler``: the batch as one dask.distributed task per input file.
 
 The per-file work is :func:`napari_dslrxr.core.files.run_file`, exactly as with ``--jobs``
-(same atomic writes and sidecars, so the outputs have the same bytes). The command prepares the
-flat/dark reference once, in a thread while the workers start, and writes it into a hidden folder
-of the output folder; each worker maps it read-only from there (a 24 MP reference is 576 MB:
-scattered through the scheduler it kept the workers idle for longer than preparing it takes, and
-each worker preparing its own spent that CPU time once per worker). A worker that cannot see the
-folder (no shared file system) prepares the reference from the reference files with its first
-file, as the process pool's workers do. Each worker computes the PSF kernel (small) once and keeps
-both in its ``reference_cache`` for its later files. The folder is removed when the command ends.
+(same atomic writes and sidecars, so the outputs have the same bytes). The flat/dark reference is
+prepared once by the command, as for the process pool (:mod:`.shared_reference`): in a thread
+started before the workers; the tasks are submitted as soon as the workers are up, and their first
+files' impulse removal runs while the reference is prepared. Each worker computes the PSF kernel (small) once and keeps both in its
+``reference_cache`` for its later files.
 
 The workers of ``--scheduler local`` share the cores out to their native libraries (OpenCV, BLAS:
 one thread each on a 2-core machine with 2 workers), run without dask's statistical profiler and
@@ -32,9 +29,7 @@ import contextlib
 import logging
 import os
 import resource
-import shutil
 import signal
-import socket
 import sys
 import threading
 import uuid
@@ -43,6 +38,7 @@ from pathlib import Path
 
 from ..core.errors import DslrxrError, ParameterError
 from .file_job import HEAP_ENVIRON
+from .shared_reference import shared_reference, worker_reference
 
 #: Seconds to wait for an address given with ``--scheduler`` to answer.
 CONNECT_TIMEOUT_S = 20
@@ -62,6 +58,15 @@ class ClusterError(DslrxrError):
     """The dask scheduler cannot be reached, or the connection to it was lost."""
 
 
+def require_distributed() -> None:
+    """Say how to install dask.distributed when it is not installed (without importing it: the
+    command imports it once its other work is under way)."""
+    import importlib.util
+
+    if importlib.util.find_spec("distributed") is None:
+        import_distributed()
+
+
 def import_distributed():
     try:
         import distributed
@@ -72,123 +77,30 @@ def import_distributed():
 
 
 def _reference_set(job: dict) -> tuple:
-    """What a job's prepared references depend on: the same tuple, the same references."""
+    """What the references a job prepares depend on: its flat reference's key but for the input's
+    shape (read with the file), and its PSF kernel's key. The same set, the same references."""
+    from ..core.files import flat_reference_key, input_black_level, psf_kernel_key
     from ..core.params import params_from_dict
-    from ..core.files import input_black_level
 
     params = params_from_dict(job["params"])
-    return (tuple(job["flats"]), tuple(job["darks"]), job["psf"], job["sod"], job["sdd"],
-            repr(input_black_level(job["input"], params)), repr(params.flatfield))
+    return (flat_reference_key(job["flats"], job["darks"], (), input_black_level(job["input"], params), params),
+            psf_kernel_key(job["psf"], job["sod"], job["sdd"]) if job["psf"] else None)
 
 
 def _run_on_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
     """The task of one file: :func:`~.file_job.process_one` with this worker's prepared references
-    (the command's shared flat reference mapped with the first file, when this worker sees it)."""
+    and the command's shared flat reference (waited for when the file's flat-field stage starts)."""
     from .file_job import process_one
 
-    shared = job.get("shared_reference")
-    if shared is not None and shared["key"] not in _worker_references:
-        from ..core.files import load_flat_reference
-
-        with contextlib.suppress(OSError, ValueError, KeyError):  # not visible here: run_file prepares it
-            _worker_references[shared["key"]] = load_flat_reference(shared["folder"])
+    reference = worker_reference(job.get("shared_reference"))
     key = _reference_set(job)
     if key in _prepared_sets:
-        return process_one(job, _worker_references)
+        return process_one(job, _worker_references, reference)
     with _first_file_lock:  # the first file of a reference set prepares it, once per worker
-        outcome = process_one(job, _worker_references)
+        outcome = process_one(job, _worker_references, reference)
         if outcome[1]:
             _prepared_sets.add(key)
     return outcome
-
-
-#: Name of the hidden folder of the output folder that holds a running batch's shared flat
-#: reference: this prefix, the host name and the command's process id.
-SHARED_REFERENCE_PREFIX = ".dslrxr-reference-"
-
-
-def _prepare_shared_reference(job: dict, folder: Path) -> dict | None:
-    """Prepare the flat reference of ``job`` (its reference files, parameters and its input's dark
-    offset) and write it to ``folder``. Returns what a worker needs to map it, or None when
-    there is nothing to prepare or it cannot be prepared here: the workers then prepare it from
-    the reference files themselves, and report a bad reference file with each input."""
-    from ..core.files import flat_reference_key, input_black_level, load_frames, save_flat_reference
-    from ..core.params import params_from_dict, validate_params
-    from ..core.stages.flatfield import prepare_flat_reference
-
-    if not job["flats"] and not job["darks"]:
-        return None  # the reference is the dark offset alone: nothing worth sharing
-    try:
-        params = validate_params(params_from_dict(job["params"]))
-        flats, darks = load_frames(job["flats"]), load_frames(job["darks"])
-        shapes = {frame.shape for frame in (*flats, *darks)}
-        if len(shapes) != 1:
-            return None
-        shape = shapes.pop()
-        offset = input_black_level(job["input"], params)
-        reference = prepare_flat_reference(shape, flats=flats, darks=darks, black_level=offset,
-                                           params=params.flatfield)
-        del flats, darks
-        save_flat_reference(reference, folder)
-    except Exception:  # noqa: BLE001 - the workers prepare it and report what is wrong, file by file
-        return None
-    return {"key": flat_reference_key(job["flats"], job["darks"], shape, offset, params), "folder": str(folder)}
-
-
-def _remove_stale_references(out_dir: Path) -> None:
-    """Remove shared reference folders left in ``out_dir`` by commands on this host that no
-    longer run (killed with SIGKILL, or the machine stopped)."""
-    host = socket.gethostname()
-    for folder in out_dir.glob(SHARED_REFERENCE_PREFIX + "*"):
-        parts = folder.name[len(SHARED_REFERENCE_PREFIX):].removesuffix(".partial").rsplit("-", 2)
-        if len(parts) == 3 and parts[0] == host and parts[1].isdigit() and not _process_alive(int(parts[1])):
-            shutil.rmtree(folder, ignore_errors=True)
-
-
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, someone else's
-        return True
-    return True
-
-
-def _terminate_as_interrupt(signum, frame):  # noqa: ARG001 - a signal handler's signature
-    raise KeyboardInterrupt
-
-
-@contextlib.contextmanager
-def shared_reference(todo: list[dict]) -> Iterator[Callable[[], dict | None]]:
-    """Prepare the batch's flat reference (that of its first file) in a thread of this command,
-    into a hidden folder of the output folder, while the caller starts the workers. Yields a
-    function that waits for it and returns what the jobs carry to the workers (None: nothing
-    shared). The folder is removed at the end, also after an error, Ctrl-C or SIGTERM (which
-    ends the command as an interruption meanwhile); one left by a killed command on this host
-    is removed by the next run into the same folder."""
-    out_dir = Path(todo[0]["out_dir"])
-    _remove_stale_references(out_dir)
-    folder = out_dir / f"{SHARED_REFERENCE_PREFIX}{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    prepared: dict = {}
-    thread = threading.Thread(target=lambda: prepared.update(shared=_prepare_shared_reference(todo[0], folder)),
-                              name="dslrxr-shared-reference", daemon=True)
-    thread.start()
-
-    def wait() -> dict | None:
-        thread.join()
-        return prepared.get("shared")
-
-    in_main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if in_main_thread else None
-    try:
-        yield wait
-    finally:
-        thread.join()  # a preparation under way finishes (seconds) so that its folder goes too
-        for path in (folder, folder.with_name(folder.name + ".partial")):
-            shutil.rmtree(path, ignore_errors=True)
-        if in_main_thread:
-            signal.signal(signal.SIGTERM, previous)
 
 
 def native_threads_per_process(n_processes: int) -> int:
@@ -201,6 +113,23 @@ def native_threads_per_process(n_processes: int) -> int:
 def _peak_rss_mb() -> float:
     """Peak resident memory of this (worker) process, MiB (Linux reports KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@contextlib.contextmanager
+def _interruptions_deferred() -> Iterator[list[int]]:
+    """Ctrl-C and SIGTERM received meanwhile are listed, to act on once dask has started the
+    LocalCluster (interrupted midway, dask's exit hook fails on its half-started workers)."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = {sig: signal.signal(sig, lambda signum, frame: received.append(signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield received
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 @contextlib.contextmanager
@@ -221,10 +150,12 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
         # the workers' statistical profiler samples their threads 100 times a second (about 1 % of
         # a core each) for a dashboard page nobody reads during a batch
         settings["distributed.worker.profile.enabled"] = False
-        with dask.config.set(settings):
+        with dask.config.set(settings), _interruptions_deferred() as interrupted:
             cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                                                dashboard_address=":0", silence_logs=logging.ERROR)
         try:
+            if interrupted:
+                raise KeyboardInterrupt
             with distributed.Client(cluster, set_as_default=False) as client:
                 yield client
         finally:
@@ -284,14 +215,14 @@ def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
         The scheduler cannot be reached, or the connection was lost (files that finished
         before are complete; a rerun does the rest).
     """
-    distributed = import_distributed()
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
     where = "a local dask cluster" if scheduler == "local" else f"the dask scheduler at {scheduler}"
     finished = 0
-    # the reference is prepared while the workers start; the tasks are submitted when it is ready
-    with shared_reference(todo) as wait_for_reference, connect(scheduler, n_workers) as client:
+    # the reference is prepared while the workers start and run their first files' impulse removal
+    with shared_reference(todo, start=True) as shared, connect(scheduler, n_workers) as client:
+        distributed = import_distributed()  # imported by connect, once the reference is under way
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
         n = len(client.scheduler_info().get("workers", {}))
         print(f"dslrxr: {len(todo)} file(s) on {where} ({n} worker(s) now)", file=sys.stderr)
         link = _dashboard(client)
@@ -299,8 +230,7 @@ def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
               "dslrxr: no dask dashboard (install bokeh>=3.1 for one)", file=sys.stderr)
         try:
             run_id = uuid.uuid4().hex[:8]
-            shared = wait_for_reference()
-            futures = [client.submit(_run_on_worker, {**job, "shared_reference": shared}, pure=False,
+            futures = [client.submit(_run_on_worker, {**job, "shared_reference": shared.folder}, pure=False,
                                      key=f"dslrxr-run-{run_id}-{i}-{Path(job['input']).name}")
                        for i, job in enumerate(todo)]
             by_key = {f.key: job for f, job in zip(futures, todo, strict=True)}
@@ -311,7 +241,7 @@ def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
                 task = bar.add_task("files", total=len(todo))
                 for future in distributed.as_completed(futures, loop=client.loop):
                     if future.status == "error":  # the task raised on the worker: this file only
-                        outcome = (by_key[future.key]["input"], False, _failed_task_message(future.exception()), 0.0)
+                        outcome = (by_key[future.key]["input"], False, _failed_task_message(future.exception()), 0.0, [])
                     elif future.status == "finished":
                         try:
                             outcome = future.result()

@@ -85,10 +85,12 @@ def sidecar_warnings(written: list) -> list[str]:
     return []
 
 
-def process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, bool, str, float, list[str]]:
+def process_one(job: dict, reference_cache: dict | None = None,
+                reference=None) -> tuple[str, bool, str, float, list[str]]:
     """Worker: run one input; returns (input, ok, message, seconds, warnings). Picklable for processes.
 
-    ``reference_cache`` (sequential runs) keeps the prepared flat reference between files.
+    ``reference_cache`` keeps the prepared flat reference between files; ``reference`` (a
+    worker's) gives the batch's shared one (:func:`~.shared_reference.worker_reference`).
     """
     from ..core.params import params_from_dict
     from ..core.files import run_file
@@ -99,7 +101,7 @@ def process_one(job: dict, reference_cache: dict | None = None) -> tuple[str, bo
         written = run_file(job["input"], job["out_dir"], params=params, flat_paths=job["flats"],
                            dark_paths=job["darks"], psf_path=job["psf"],
                            source_to_object_mm=job["sod"], source_to_detector_mm=job["sdd"],
-                           patient=job["patient"], reference_cache=reference_cache,
+                           patient=job["patient"], reference_cache=reference_cache, reference=reference,
                            warn=lambda line: print(f"dslrxr: {job['input']}: {line}", file=sys.stderr))
         return (job["input"], True, f"wrote {len(written)} file(s)", time.perf_counter() - t0,
                 sidecar_warnings(written))

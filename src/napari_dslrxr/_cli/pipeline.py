@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -10,21 +11,23 @@ import typer
 
 from ..core.errors import ParameterError
 from .file_job import freed_memory_kept, keep_freed_memory, process_one
+from .shared_reference import shared_reference, worker_reference
 
 
-#: Flat references prepared in this worker process (``--jobs > 1``): each worker reads and prepares
-#: the flats and darks once, not once per file. Set by the pool initializer, never in the parent.
+#: Flat references this worker process (``--jobs > 1``) mapped or prepared, and PSF kernels, for
+#: its later files. Set by the pool initializer, never in the parent.
 _worker_references: dict | None = None
 
 
 def _init_worker() -> None:
     global _worker_references
     _worker_references = {}
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # forked from the command, which turns it into Ctrl-C
     keep_freed_memory()
 
 
 def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
-    return process_one(job, _worker_references)
+    return process_one(job, _worker_references, worker_reference(job.get("shared_reference")))
 
 
 def _expand_inputs(inputs: list[Path]) -> list[Path]:
@@ -111,8 +114,12 @@ def _run_jobs(todo: list[dict], params) -> int:
 
         run_on_cluster(todo, scheduler=scheduler, n_workers=jobs, report=report)
     elif jobs > 1 and total > 1:
-        with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool:
-            for i, outcome in enumerate(pool.map(_process_one_in_worker, todo), start=1):
+        with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool, \
+                shared_reference(todo) as shared:
+            # the workers start (fork) with the first job, before the thread preparing the reference
+            outcomes = pool.map(_process_one_in_worker, [{**job, "shared_reference": shared.folder} for job in todo])
+            shared.start()
+            for i, outcome in enumerate(outcomes, start=1):
                 report(i, outcome)
     else:
         cache: dict = {}  # flats and darks are read and prepared once for the batch
@@ -155,9 +162,9 @@ def register(app: typer.Typer) -> None:
         """
         params = _run_params(config, dicom=dicom, scheduler=scheduler, jobs=jobs)
         if params.batch.scheduler:
-            from .cluster import import_distributed
+            from .cluster import require_distributed
 
-            import_distributed()  # says how to install it before any work is done
+            require_distributed()  # says how to install it before any work is done
         if psf is not None and (source_to_object_mm is None or source_to_detector_mm is None):
             raise ParameterError("--psf needs --source-to-object-mm and --source-to-detector-mm")
         for ref in [*flat, *dark, *([psf] if psf else [])]:

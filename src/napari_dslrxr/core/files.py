@@ -187,10 +187,11 @@ def flat_reference_key(flat_paths: Sequence[str | os.PathLike], dark_paths: Sequ
             repr(params.flatfield))
 
 
-def save_flat_reference(reference: FlatReference, folder: str | os.PathLike) -> Path:
-    """Write a prepared reference to the new folder ``folder`` (one ``.npy`` per array and its
-    counts), so other processes can map it with :func:`load_flat_reference` instead of preparing
-    it again. The folder appears complete or not at all (written beside it, then renamed)."""
+def save_flat_reference(reference: FlatReference, folder: str | os.PathLike, key: tuple = ()) -> Path:
+    """Write a prepared reference to the new folder ``folder`` (one ``.npy`` per array, its
+    counts and its ``key``, :func:`flat_reference_key`), so other processes can map it with
+    :func:`load_flat_reference` instead of preparing it again. The folder appears complete or
+    not at all (written beside it, then renamed)."""
     import shutil
 
     folder = Path(folder)
@@ -202,7 +203,7 @@ def save_flat_reference(reference: FlatReference, folder: str | os.PathLike) -> 
             arrays["denominator"] = reference.denominator
         for name, array in arrays.items():
             np.save(partial_folder / f"{name}.npy", np.ascontiguousarray(array), allow_pickle=False)
-        counts = {"n_flats": reference.n_flats, "cleaned_pulses": reference.cleaned_pulses}
+        counts = {"n_flats": reference.n_flats, "cleaned_pulses": reference.cleaned_pulses, "key": repr(key)}
         (partial_folder / "counts.json").write_text(json.dumps(counts), encoding="utf-8")
         os.replace(partial_folder, folder)
     except BaseException:
@@ -211,17 +212,20 @@ def save_flat_reference(reference: FlatReference, folder: str | os.PathLike) -> 
     return folder
 
 
-def load_flat_reference(folder: str | os.PathLike) -> FlatReference:
-    """A reference written by :func:`save_flat_reference`, its arrays memory-mapped read-only
-    (processes on one machine share the pages; nothing is copied).
+def load_flat_reference(folder: str | os.PathLike, key: tuple = ()) -> FlatReference:
+    """A reference written by :func:`save_flat_reference` with ``key``, its arrays
+    memory-mapped read-only (processes on one machine share the pages; nothing is copied).
 
     Raises
     ------
     OSError, ValueError
-        The folder is missing (not visible from this machine) or not a reference.
+        The folder is missing (not visible from this machine), not a reference, or one
+        prepared for another key.
     """
     folder = Path(folder)
     counts = json.loads((folder / "counts.json").read_text(encoding="utf-8"))
+    if counts.get("key") != repr(key):
+        raise ValueError(f"{folder}: a flat reference prepared for other frames or parameters")
     denominator = folder / "denominator.npy"
     return FlatReference(offset=np.load(folder / "offset.npy", mmap_mode="r", allow_pickle=False),
                          denominator=(np.load(denominator, mmap_mode="r", allow_pickle=False)
@@ -252,23 +256,30 @@ def _psf_kernel(psf_path: str | os.PathLike, source_to_object_mm: float | None,
     return kernel
 
 
-def _reference_frames(flat_paths: Sequence[str | os.PathLike], dark_paths: Sequence[str | os.PathLike],
-                      shape: tuple[int, ...], shape_of: str):
-    """Read the flats and darks, which must all have ``shape`` (``shape_of`` says whose, for
-    the message). Returns ``(flats, darks, shape)``."""
+def flat_reference_from_files(flat_paths: Sequence[str | os.PathLike], dark_paths: Sequence[str | os.PathLike],
+                              offset, params: PipelineParams, *, shape: tuple[int, ...] | None = None,
+                              shape_of: str = "the first reference frame") -> tuple[tuple, FlatReference]:
+    """Read the flats and darks and prepare their flat reference (dark offset ``offset`` when
+    there is no dark): the one preparation of :func:`run_file` and of a batch that prepares it
+    once for its workers. The frames must all have ``shape`` (default: the first frame's);
+    ``shape_of`` says whose, for the message. Returns the reference's key
+    (:func:`flat_reference_key`) and the reference."""
     flats, darks = load_frames(flat_paths), load_frames(dark_paths)
+    if shape is None:
+        shape = (*flats, *darks)[0].shape
     for name, frame_paths, frames in (("flat", flat_paths, flats), ("dark", dark_paths, darks)):
         for p, f in zip(frame_paths, frames, strict=True):
             if f.shape != shape:
                 raise InputError(p, f"{name} frame shape {f.shape} differs from {shape_of}")
-    return flats, darks, shape
+    return (flat_reference_key(flat_paths, dark_paths, shape, offset, params),
+            prepare_flat_reference(shape, flats=flats, darks=darks, black_level=offset, params=params.flatfield))
 
 
 def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
              params: PipelineParams | None = None, flat_paths: Sequence[str | os.PathLike] = (),
              dark_paths: Sequence[str | os.PathLike] = (), psf_path: str | os.PathLike | None = None,
              source_to_object_mm: float | None = None, source_to_detector_mm: float | None = None,
-             reference: FlatReference | None = None, patient: dict | None = None,
+             reference: Callable[[tuple], FlatReference | None] | None = None, patient: dict | None = None,
              progress: Callable[[int, int], object] | None = None,
              reference_cache: dict | None = None,
              warn: Callable[[str], object] | None = None) -> list[Path]:
@@ -287,13 +298,16 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
         Existing output folder.
     params : PipelineParams, optional
     flat_paths, dark_paths : sequence of path-like
-        Reference frames; ignored when ``reference`` is given.
+        Reference frames.
     psf_path : path-like, optional
         PSF model JSON (:func:`napari_dslrxr.core.psf.load_psf`); with the two distances it
         turns on deblurring.
     source_to_object_mm, source_to_detector_mm : float, optional
-    reference : FlatReference, optional
-        Prepared flat reference (a batch prepares it once).
+    reference : callable, optional
+        A batch's prepared flat reference: called with the reference's key
+        (:func:`flat_reference_key`) when the flat-field stage starts (impulse removal runs
+        first, so a worker need not wait for a reference prepared elsewhere meanwhile); returns
+        it, or None when it has none for that key (prepared here then).
     patient : dict, optional
         DICOM patient fields supplied by the user (``PatientName``, ``PatientID``...).
     reference_cache : dict, optional
@@ -340,16 +354,20 @@ def run_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, *,
     if psf_path is not None:
         kernel = _psf_kernel(psf_path, source_to_object_mm, source_to_detector_mm, reference_cache)
     offset = black if black is not None else params.flatfield.black_level_counts
-    cache_key = flat_reference_key(flat_paths, dark_paths, image.shape, offset, params)
-    if reference is None and reference_cache is not None:
-        reference = reference_cache.get(cache_key)
-    if reference is None:
-        flats, darks, _ = _reference_frames(flat_paths, dark_paths, image.shape, f"{input_path}'s {image.shape}")
-        reference = prepare_flat_reference(image.shape, flats=flats, darks=darks, black_level=offset,
-                                           params=params.flatfield)
+
+    def flat_reference() -> FlatReference:  # when the flat-field stage starts
+        key = flat_reference_key(flat_paths, dark_paths, image.shape, offset, params)
+        prepared = reference_cache.get(key) if reference_cache is not None else None
+        if prepared is None and reference is not None:
+            prepared = reference(key)
+        if prepared is None:
+            _, prepared = flat_reference_from_files(flat_paths, dark_paths, offset, params, shape=image.shape,
+                                                 shape_of=f"{input_path}'s {image.shape}")
         if reference_cache is not None:
-            reference_cache[cache_key] = reference
-    result = process_frame(image, params=params, reference=reference, psf_kernel=kernel, progress=progress,
+            reference_cache[key] = prepared
+        return prepared
+
+    result = process_frame(image, params=params, reference=flat_reference, psf_kernel=kernel, progress=progress,
                            impulses_removed=impulses_removed)
     result.results["input_kind"] = kind.as_record()
     if impulses_removed is not None:

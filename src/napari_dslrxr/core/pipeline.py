@@ -365,7 +365,8 @@ def _attenuation_stage(grey: np.ndarray, region: Region, params: PipelineParams,
 
 def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: Sequence[np.ndarray] = (),
                  black_level=None, psf_kernel: np.ndarray | None = None,
-                 params: PipelineParams | None = None, reference: FlatReference | None = None,
+                 params: PipelineParams | None = None,
+                 reference: FlatReference | Callable[[], FlatReference] | None = None,
                  keep_intermediates: bool = False,
                  impulses_removed: dict | None = None) -> Generator[tuple[int, int], None, PipelineResult]:
     """Run the six stages on one frame, yielding ``(done, total)`` after each stage.
@@ -381,8 +382,9 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     psf_kernel : ndarray, optional
         Blur kernel on the frame's pixel grid; deblurring (stage iv) runs only when given.
     params : PipelineParams, optional
-    reference : FlatReference, optional
-        A prepared flat-field reference (reuse across a batch); overrides flats/darks.
+    reference : FlatReference or callable, optional
+        A prepared flat-field reference (reuse across a batch); overrides flats/darks. A
+        function returning it is called when stage (ii) starts (stage (i) does not need it).
     keep_intermediates : bool
         Keep the intermediate images in the result (memory: several full-size copies).
     impulses_removed : dict, optional
@@ -422,6 +424,8 @@ def run_pipeline(image: np.ndarray, *, flats: Sequence[np.ndarray] = (), darks: 
     yield 1, total
 
     # (ii) flat field per colour channel
+    if callable(reference):  # prepared (or waited for) now, outside the stage's timing as a given one
+        reference = reference()
     t0 = clock()
     if reference is None:
         offset = black_level if black_level is not None else params.flatfield.black_level_counts
