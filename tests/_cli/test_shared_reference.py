@@ -74,8 +74,36 @@ def test_the_shared_reference_is_the_one_run_file_prepares_and_is_removed(tmp_pa
         del mapped, mapped_by_worker
     assert not list(out.iterdir())
     with pytest.raises(RuntimeError), shared_ref.shared_reference([_job(frames, out)], start=True) as shared:
-        assert shared_ref.worker_reference(shared.folder)(key) is not None and len(list(out.iterdir())) == 1
+        assert shared_ref.worker_reference(shared.folder)(key) is not None
+        assert sorted(p.name for p in out.iterdir()) == [Path(shared.folder).name, Path(shared.folder).name + ".sha256"]
         raise RuntimeError("a failure while the batch runs")
+    assert not list(out.iterdir())
+
+
+def test_workers_take_the_reference_files_checksums_from_the_command(tmp_path, frames, monkeypatch):
+    """Every output's sidecar records the flat's and dark's checksums: the command computes them
+    once and a worker that maps the reference takes them instead of reading the files again
+    (only for files that have not changed since)."""
+    import hashlib
+
+    from napari_dslrxr.core.io import file_sha256
+    from napari_dslrxr.core.io import writers
+
+    monkeypatch.setattr(writers, "_SETTLED_NS", 0)  # else a file changed in the last 2 s is hashed each time
+    out = tmp_path / "out"
+    out.mkdir()
+    with shared_ref.shared_reference([_job(frames, out)], start=True) as shared:
+        assert shared_ref._wait_for(Path(shared.folder))
+        monkeypatch.setattr(writers, "_DIGESTS", type(writers._DIGESTS)())  # a worker: none known yet
+        assert shared_ref.worker_reference(shared.folder)(("another key",)) is None
+        remembered = dict(writers._DIGESTS)
+        assert len(remembered) == 2
+        opened = []
+        monkeypatch.setattr("builtins.open", lambda path, *a, **k: opened.append(path))
+        digests = [file_sha256(frames[name]) for name in ("flat", "dark")]
+        assert not opened  # not read again
+    monkeypatch.undo()
+    assert digests == [hashlib.sha256(frames[name].read_bytes()).hexdigest() for name in ("flat", "dark")]
     assert not list(out.iterdir())
 
 

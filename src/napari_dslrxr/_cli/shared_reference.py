@@ -41,17 +41,36 @@ def _prepare_shared_reference(job: dict, folder: Path) -> None:
     offset) and write it to ``folder``; an empty ``folder`` when it cannot be prepared here: the
     workers then prepare it from the reference files themselves, and report a bad reference file
     with each input."""
+    import json
+
     from ..core.files import flat_reference_from_files, input_black_level, save_flat_reference
+    from ..core.io import known_sha256
     from ..core.params import params_from_dict, validate_params
 
     try:
         params = validate_params(params_from_dict(job["params"]))
         key, reference = flat_reference_from_files(job["flats"], job["darks"],
                                                    input_black_level(job["input"], params), params)
+        # the reference files' checksums, which every output's sidecar records: read once, here
+        # (just read, they are in the page cache), not once per worker; written before the folder
+        _checksums_path(folder).write_text(json.dumps(known_sha256([*job["flats"], *job["darks"]])),
+                                           encoding="utf-8")
         save_flat_reference(reference, folder, key)
     except Exception:  # noqa: BLE001 - the workers prepare it and report what is wrong, file by file
         with contextlib.suppress(OSError):
             folder.mkdir()
+
+
+def _checksums_path(folder: Path) -> Path:
+    """Beside the shared reference ``folder``: its reference files' checksums."""
+    return folder.with_name(folder.name + ".sha256")
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
 
 
 def _remove_stale_references(out_dir: Path) -> None:
@@ -60,13 +79,14 @@ def _remove_stale_references(out_dir: Path) -> None:
     for folder in out_dir.glob(SHARED_REFERENCE_PREFIX + "*"):
         command = _command_here(folder)
         if command is not None and not _process_alive(command):
-            shutil.rmtree(folder, ignore_errors=True)
+            _remove(folder)
 
 
 def _command_here(folder: Path) -> int | None:
     """The process id of the command that makes the shared reference ``folder``, when it runs
     on this host (else None)."""
-    parts = folder.name[len(SHARED_REFERENCE_PREFIX):].removesuffix(".partial").rsplit("-", 2)
+    name = folder.name[len(SHARED_REFERENCE_PREFIX):].removesuffix(".partial").removesuffix(".sha256")
+    parts = name.rsplit("-", 2)
     if len(parts) == 3 and parts[0] == socket.gethostname() and parts[1].isdigit():
         return int(parts[1])
     return None
@@ -112,8 +132,9 @@ class SharedReference:
             return
         if self._thread.ident is not None:
             self._thread.join()  # a preparation under way finishes (seconds) so that its folder goes too
-        for path in (Path(self.folder), Path(self.folder + ".partial")):
-            shutil.rmtree(path, ignore_errors=True)
+        folder = Path(self.folder)
+        for path in (folder, folder.with_name(folder.name + ".partial"), _checksums_path(folder)):
+            _remove(path)
 
 
 @contextlib.contextmanager
@@ -148,15 +169,21 @@ def _wait_for(folder: Path) -> bool:
 
 def worker_reference(folder: str | None):
     """For a worker's :func:`~napari_dslrxr.core.files.run_file` (its ``reference``): the shared
-    reference in ``folder`` for the key asked, mapped read-only once the command has written it;
+    reference in ``folder`` for the key asked, mapped read-only once the command has written it
+(and the reference files' checksums it computed, remembered);
     None (the worker prepares its own) when there is none, the folder holds another key's
     reference, or the worker does not see the output folder (no shared file system: it does not
     wait then)."""
     def reference(key: tuple):
+        import json
+
         from ..core.files import load_flat_reference
+        from ..core.io import remember_sha256
 
         if folder is None or not Path(folder).parent.is_dir() or not _wait_for(Path(folder)):
             return None
+        with contextlib.suppress(OSError, ValueError, TypeError):
+            remember_sha256(json.loads(_checksums_path(Path(folder)).read_text(encoding="utf-8")))
         with contextlib.suppress(OSError, ValueError, KeyError):
             return load_flat_reference(folder, key)
         return None

@@ -25,7 +25,7 @@ _PUBLIC: dict[str, tuple[str, ...]] = {
         "MIN_SIDE_PX", "DEFAULT_MAX_PIXELS", "max_pixels_limit", "RawFrame", "LoadedImage", "validate_image"),
     "readers": ("read_image", "read_structured_file"),
     "raw": ("read_raw", "postprocess_linear"),
-    "writers": ("file_sha256", "check_not_an_input", "atomic_write", "write_tiff", "write_png"),
+    "writers": ("file_sha256", "known_sha256", "remember_sha256", "check_not_an_input", "atomic_write", "write_tiff", "write_png"),
     "dicom": ("DX_FOR_PRESENTATION", "ALLOWED_PATIENT_FIELDS", "deterministic_uid", "write_dicom_dx"),
     "report_files": ("figure_png", "write_text", "report_folder"),
     "provenance": ("sidecar_path", "to_jsonable", "describe_inputs", "library_versions", "write_sidecar"),

@@ -63,6 +63,29 @@ def file_sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     return value
 
 
+def known_sha256(paths: Iterable[str | os.PathLike]) -> list[list]:
+    """The digests of ``paths`` (hashed now unless remembered), each with the file state it
+    holds for, as ``[path, state, digest]``: what another process of a batch passes to
+    :func:`remember_sha256` not to read the same files again. Files too recently changed to be
+    remembered are left out."""
+    records = []
+    for path in paths:
+        digest = file_sha256(path)
+        state = _file_state(path)
+        if _DIGESTS.get(state) == digest:
+            records.append([str(path), list(state), digest])
+    return records
+
+
+def remember_sha256(records: Iterable[list]) -> None:
+    """Remember digests another process computed (:func:`known_sha256`), each for as long as
+    its file keeps the recorded state here (same device, inode, size and time stamps)."""
+    for path, state, digest in records:
+        with contextlib.suppress(OSError):
+            if _file_state(path) == tuple(state):
+                _DIGESTS[tuple(state)] = digest
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         return a.exists() and b.exists() and os.path.samefile(a, b)
