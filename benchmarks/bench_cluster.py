@@ -16,7 +16,11 @@ command, the pool's or the cluster's workers, helper processes; the last tenth o
 a process may be missed); the pipeline's own stage timings summed over the files' sidecars
 (wall time inside each stage: a stage slowed by the other process shows here). From
 ``--jobs 1``'s figure, the bound on any parallel speedup on this machine (cores / cores one
-process keeps busy).
+process keeps busy). Idle core-seconds: cores x wall - CPU (``idle_core_s``, which other work on
+the machine inflates), and the run's own (``idle_core_s_own``: the cores left without one of its
+threads running or waiting for a core, sampled every 0.1 s; other work delays those threads but
+does not put them to sleep, so this one holds under load, but it counts dask's own threads as
+work), with its timeline (``runnable_threads_per_second``: where in the run the cores idle).
 
 The frames are one generated phantom shifted by a few pixels per file (generating eight 24 MP
 phantoms would take longer than the benchmark). Usage:
@@ -28,6 +32,7 @@ after each run is recorded with the figures.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -67,6 +72,19 @@ def _proc_stat(pid: int) -> tuple[int, float, float, int] | None:
     return int(fields[1]), int(fields[11]) / _TICKS, int(fields[12]) / _TICKS, int(fields[7])
 
 
+def _runnable_threads(pid: int) -> int:
+    """How many threads of a live process are running or waiting for a core (state R)."""
+    count = 0
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(OSError):
+                text = Path(f"/proc/{pid}/task/{task}/stat").read_text()
+                count += text[text.rindex(")") + 2] == "R"
+    except OSError:
+        pass
+    return count
+
+
 def _peak_rss_mb(pid: int) -> float | None:
     """A live process's peak resident memory so far (its high-water mark), MiB."""
     try:
@@ -99,6 +117,8 @@ class _ProcessSampler(threading.Thread):
     def __init__(self, root: int, interval: float = 0.1):
         super().__init__(daemon=True)
         self.root, self.interval, self.seen, self.done = root, interval, {}, threading.Event()
+        self.runnable: list[tuple[float, int]] = []  # (seconds since start, threads running or runnable)
+        self.t0 = time.perf_counter()
 
     def run(self) -> None:
         while not self.done.is_set():
@@ -116,6 +136,7 @@ class _ProcessSampler(threading.Thread):
                     if ppid in family and pid not in family:
                         family.add(pid)
                         grew = True
+            self.runnable.append((time.perf_counter() - self.t0, sum(map(_runnable_threads, family & stats.keys()))))
             for pid in family & stats.keys():
                 role = self.seen.get(pid, {}).get("role") or _role(pid, self.root)
                 _, user, system, faults = stats[pid]
@@ -123,6 +144,24 @@ class _ProcessSampler(threading.Thread):
                 self.seen[pid] = {"role": role, "user_s": user, "system_s": system, "minor_faults": faults,
                                   "peak_rss_mb": peak}
             self.done.wait(self.interval)
+
+    def idle_core_seconds(self, cores: int) -> float:
+        """Core-seconds the run left without a thread of its own to run: sum over the samples of
+        ``cores`` minus the threads of the command's processes that were running or waiting for a
+        core. Other work on the machine delays those threads but does not put them to sleep, so
+        this counts what the run itself leaves idle (waits, serial parts), load or not."""
+        total, previous = 0.0, 0.0
+        for t, n in self.runnable:
+            total += max(0, cores - n) * (t - previous)
+            previous = t
+        return round(total, 2)
+
+    def runnable_per_second(self) -> str:
+        """The threads running or runnable, averaged over each second of the run (a timeline)."""
+        buckets: dict[int, list[int]] = {}
+        for t, n in self.runnable:
+            buckets.setdefault(int(t), []).append(n)
+        return " ".join(f"{sum(v) / len(v):.1f}" for _, v in sorted(buckets.items()))
 
     def processes(self) -> list[dict]:
         return [{"pid": pid, **{k: round(v, 2) if isinstance(v, float) else v for k, v in fig.items()}}
@@ -159,6 +198,11 @@ def _run(args: list[str]) -> dict:
     for p in processes:
         by_role[p["role"]] = round(by_role.get(p["role"], 0.0) + p["user_s"] + p["system_s"], 2)
     return {"wall_s": round(wall, 2), "cpu_s": round(cpu, 1), "cores_busy_on_average": round(cpu / wall, 2),
+            # idle core-seconds: the cores' time the run did not use (cores x wall - CPU; grows with
+            # other work on the machine), and what the run itself left without a runnable thread
+            "idle_core_s": round((os.cpu_count() or 1) * wall - cpu, 1),
+            "idle_core_s_own": sampler.idle_core_seconds(os.cpu_count() or 1),
+            "runnable_threads_per_second": sampler.runnable_per_second(),
             "user_s": round(usage.ru_utime, 1), "system_s": round(usage.ru_stime, 1),
             "minor_faults": usage.ru_minflt, "cpu_s_by_role": by_role, "processes": processes,
             # the largest high-water mark sampled (wait4's maxrss would count what the benchmark held when
