@@ -57,7 +57,8 @@ def test_the_shared_reference_is_the_one_run_file_prepares_and_is_removed(tmp_pa
     with shared_ref.shared_reference([_job(frames, out)]) as shared:
         assert not stale.exists()
         mapped_by_worker = []
-        worker = threading.Thread(target=lambda: mapped_by_worker.append(shared_ref.worker_reference(shared.folder)(key)))
+        worker = threading.Thread(target=lambda: mapped_by_worker.append(
+            shared_ref.worker_reference(shared.folder)(key)))
         worker.start()  # a worker's file reaches its flat-field stage before the reference is ready
         worker.join(0.5)
         assert worker.is_alive() and not mapped_by_worker  # it waits for the folder
@@ -71,7 +72,8 @@ def test_the_shared_reference_is_the_one_run_file_prepares_and_is_removed(tmp_pa
         # a file of another shape or parameters prepares its own
         other = flat_reference_key([str(frames["flat"])], [str(frames["dark"])], (80, 120, 3), offset, params)
         assert shared_ref.worker_reference(shared.folder)(other) is None
-        del mapped, mapped_by_worker
+        del mapped
+        mapped_by_worker.clear()  # the mapping closed before the folder is removed
     assert not list(out.iterdir())
     with pytest.raises(RuntimeError), shared_ref.shared_reference([_job(frames, out)], start=True) as shared:
         assert shared_ref.worker_reference(shared.folder)(key) is not None

@@ -4,8 +4,8 @@ The per-file work is :func:`napari_dslrxr.core.files.run_file`, exactly as with 
 (same atomic writes and sidecars, so the outputs have the same bytes). The flat/dark reference is
 prepared once by the command, as for the process pool (:mod:`.shared_reference`): in a thread
 started before the workers; the tasks are submitted as soon as the workers are up, and their first
-files' impulse removal runs while the reference is prepared. Each worker computes the PSF kernel (small) once and keeps both in its
-``reference_cache`` for its later files.
+files' impulse removal runs while the reference is prepared. Each worker computes the PSF kernel
+(small) once and keeps both in its ``reference_cache`` for its later files.
 
 The workers of ``--scheduler local`` share the cores out to their native libraries (OpenCV, BLAS:
 one thread each on a 2-core machine with 2 workers), run without dask's statistical profiler and
