@@ -11,7 +11,7 @@ import typer
 
 from ..core.errors import ParameterError
 from .file_job import freed_memory_kept, keep_freed_memory, process_one
-from .shared_reference import shared_reference, worker_reference
+from .shared_reference import shared_reference, sigterm_as_interrupt, worker_reference
 
 
 #: Flat references this worker process (``--jobs > 1``) mapped or prepared, and PSF kernels, for
@@ -24,6 +24,48 @@ def _init_worker() -> None:
     _worker_references = {}
     signal.signal(signal.SIGTERM, signal.SIG_DFL)  # forked from the command, which turns it into Ctrl-C
     keep_freed_memory()
+
+
+def _stop_pool(pool: ProcessPoolExecutor, todo: list[dict], params) -> None:
+    """Cancel the files not started and stop the workers' running ones. A file is written under a
+    temporary name and renamed when complete, so a stopped file leaves no output; its temporary
+    files are removed here."""
+    import multiprocessing
+
+    from ..core.files import output_paths
+    from ..core.io.writers import remove_partial_writes
+
+    pool.shutdown(wait=False, cancel_futures=True)
+    workers = multiprocessing.active_children()  # this command's children are the pool's workers
+    for worker in workers:
+        worker.terminate()
+    for worker in workers:
+        worker.join()
+    _remove_unfinished_outputs(todo, params)
+
+
+def _remove_unfinished_outputs(todo: list[dict], params) -> None:
+    """After an interruption: remove the temporary files of stopped writes, and an output that
+    its sidecar does not describe (written, but stopped before its sidecar): only outputs whose
+    sidecar vouches for them are left."""
+    import json
+
+    from ..core.files import output_paths
+    from ..core.io import file_sha256
+    from ..core.io.provenance import sidecar_path
+    from ..core.io.writers import remove_partial_writes
+
+    for job in todo:
+        for path in output_paths(job["input"], job["out_dir"], params).values():
+            remove_partial_writes(path)
+            if not path.exists():
+                continue
+            try:
+                described = json.loads(sidecar_path(path).read_text())["output"]["sha256"] == file_sha256(path)
+            except (OSError, ValueError, KeyError, TypeError):
+                described = False
+            if not described:
+                path.unlink(missing_ok=True)
 
 
 def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
@@ -114,18 +156,29 @@ def _run_jobs(todo: list[dict], params) -> int:
 
         run_on_cluster(todo, scheduler=scheduler, n_workers=jobs, report=report)
     elif jobs > 1 and total > 1:
-        with ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker) as pool, \
-                shared_reference(todo) as shared:
-            # the workers start (fork) with the first job, before the thread preparing the reference
-            outcomes = pool.map(_process_one_in_worker, [{**job, "shared_reference": shared.folder} for job in todo])
-            shared.start()
-            for i, outcome in enumerate(outcomes, start=1):
-                report(i, outcome)
+        with shared_reference(todo) as shared:
+            pool = ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker)
+            try:
+                # the workers start (fork) with the first job, before the thread preparing the reference
+                outcomes = pool.map(_process_one_in_worker,
+                                    [{**job, "shared_reference": shared.folder} for job in todo])
+                shared.start()
+                for i, outcome in enumerate(outcomes, start=1):
+                    report(i, outcome)
+            except BaseException:  # Ctrl-C, SIGTERM: stop now, not after the queued files
+                _stop_pool(pool, todo, params)
+                raise
+            pool.shutdown()
     else:
         cache: dict = {}  # flats and darks are read and prepared once for the batch
-        with freed_memory_kept():
-            for i, job in enumerate(todo, start=1):
-                report(i, process_one(job, cache))
+        i = 0
+        with freed_memory_kept(), sigterm_as_interrupt():
+            try:
+                for i, job in enumerate(todo, start=1):
+                    report(i, process_one(job, cache))
+            except BaseException:  # Ctrl-C, SIGTERM
+                _remove_unfinished_outputs(todo[i - 1:i], params)
+                raise
     return failed
 
 

@@ -106,6 +106,19 @@ def _terminate_as_interrupt(signum, frame):  # noqa: ARG001 - a signal handler's
     raise KeyboardInterrupt
 
 
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (kill, a batch system's time limit) ends the command as Ctrl-C does, so that its
+    clean-up runs; only in the main thread, where Python delivers signals."""
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if in_main_thread else None
+    try:
+        yield
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
 class SharedReference:
     """The batch's shared reference folder and the thread of this command that prepares it."""
 
@@ -143,16 +156,13 @@ def shared_reference(todo: list[dict], *, start: bool = False) -> Iterator[Share
     started with ``start`` (else by :meth:`SharedReference.start`); removed at the end, also after an error, Ctrl-C or SIGTERM (which ends the command as an
     interruption meanwhile)."""
     shared = SharedReference(todo[0])
-    in_main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if in_main_thread else None
-    try:
-        if start:
-            shared.start()
-        yield shared
-    finally:
-        shared.remove()
-        if in_main_thread:
-            signal.signal(signal.SIGTERM, previous)
+    with sigterm_as_interrupt():
+        try:
+            if start:
+                shared.start()
+            yield shared
+        finally:
+            shared.remove()
 
 
 def _wait_for(folder: Path) -> bool:

@@ -145,6 +145,14 @@ def atomic_write(path: str | os.PathLike, writer, *, inputs: Iterable[str | os.P
     return path
 
 
+def remove_partial_writes(path: str | os.PathLike) -> None:
+    """Delete the temporary files of unfinished writes of ``path`` (and of its sidecar), as
+    left by a process stopped while writing it; the final name is never touched."""
+    path = Path(path)
+    for name in (path.name, path.name + ".json"):
+        _remove_stale_parts(path.parent, name)
+
+
 def _remove_stale_parts(folder: Path, name: str) -> None:
     """Delete ``.<name>.*.part`` files left by a process killed while writing ``name``.
 
