@@ -122,6 +122,24 @@ def test_missing_flat_and_psf_are_announced(have_data, tmp_path):
     assert len(results["warnings"]) == len(lines)  # the same text, for the widget
 
 
+def test_a_saturated_flat_is_announced(have_data, tmp_path):
+    """Seed 7007's flat is clipped at the 14-bit full scale on 23 % of its green pixels: the
+    flat field is wrong there, and the run says so (stderr and sidecar); seed 14's is not."""
+    for seed, saturated in ((7007, True), (14, False)):
+        scenario, frame, flat, config = _write_scenario(tmp_path, seed)
+        done = _dslrxr("run", str(frame), "--flat", str(flat), "-c", str(config), "-o", str(tmp_path / "out"))
+        assert done.returncode == 0, done.stderr
+        _, results = _outputs(tmp_path / "out", frame.stem)
+        said = [line for line in done.stderr.splitlines() if "flat frame saturated" in line]
+        assert len(said) == int(saturated), done.stderr
+        if saturated:
+            assert "16383 counts" in said[0]
+            assert 0.2 < results["flatfield"]["saturated_fraction"] < 0.3
+            assert any("flat frame saturated" in w for w in results["warnings"])
+        else:
+            assert "saturated_fraction" not in results["flatfield"]
+
+
 def test_automatic_regularisation_on_the_edge_sample_is_capped(tmp_path):
     from napari_dslrxr._sample_data import EDGE_SOURCE_TO_DETECTOR_MM, EDGE_TRUTH, _edge_images
     from napari_dslrxr.core.psf import PSFModel, save_psf

@@ -32,18 +32,22 @@ _DEBOUNCE_MS = 150
 
 
 def correct_with_layers(image: np.ndarray, flat: np.ndarray | None, dark: np.ndarray | None,
-                        params: FlatFieldParams, progress=None) -> tuple[np.ndarray, int, tuple[float, float]]:
+                        params: FlatFieldParams, progress=None) -> tuple[np.ndarray, int, tuple[float, float], str]:
     """Core call of the widget: prepare the reference and apply it (runs in the worker).
 
     ``progress``: the core's progress callback (the job panel's stops the preparation at
     its next step when Cancel is pressed). Returns the corrected float32 counts, the
-    number of pulse pixels cleaned from the reference frames and the result's display range
-    (computed here, not on the GUI thread).
+    number of pulse pixels cleaned from the reference frames, the result's display range
+    (computed here, not on the GUI thread) and a warning ("" when none): a clipped flat.
     """
     reference = prepare_flat_reference(image.shape, flats=[] if flat is None else [flat],
                                        darks=[] if dark is None else [dark], params=params, progress=progress)
     corrected = apply_flat_field(image, reference)
-    return corrected, reference.cleaned_pulses, robust_limits(corrected)
+    warning = ""
+    if reference.saturated_fraction > 0:
+        warning = (f"flat saturated: {100 * reference.saturated_fraction:.1f} % of its pixels at its maximum "
+                   f"({reference.saturated_level_counts:.0f}); the correction is wrong there")
+    return corrected, reference.cleaned_pulses, robust_limits(corrected), warning
 
 
 class FlatFieldWidget(Container):
@@ -177,10 +181,10 @@ class FlatFieldWidget(Container):
                              on_finished=job_done(self._apply, self._job, self._readout),
                              panel=self._job, readout=self._readout)
 
-    def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int, tuple[float, float]],
+    def _show(self, layer: napari.layers.Image, out: tuple[np.ndarray, int, tuple[float, float], str],
               preview: bool) -> Iterator[None]:
         """Show the result (a new layer over two event-loop turns, :func:`show_layer_steps`)."""
-        corrected, cleaned, limits = out
+        corrected, cleaned, limits, warning = out
         if preview and not self._preview.value:
             return  # turned off while it computed
         name = f"{layer.name} flat-fielded" + (" (preview)" if preview else "")
@@ -192,4 +196,5 @@ class FlatFieldWidget(Container):
         else:
             self.result = corrected
         self._readout.value = (f"{'preview: ' if preview else ''}corrected {corrected.shape[1]}x{corrected.shape[0]} "
-                               f"px; {cleaned} pulse px cleaned in the reference frames")
+                               f"px; {cleaned} pulse px cleaned in the reference frames"
+                               + (f"\nwarning: {warning}" if warning else ""))

@@ -203,7 +203,9 @@ def save_flat_reference(reference: FlatReference, folder: str | os.PathLike, key
             arrays["denominator"] = reference.denominator
         for name, array in arrays.items():
             np.save(partial_folder / f"{name}.npy", np.ascontiguousarray(array), allow_pickle=False)
-        counts = {"n_flats": reference.n_flats, "cleaned_pulses": reference.cleaned_pulses, "key": repr(key)}
+        counts = {"n_flats": reference.n_flats, "cleaned_pulses": reference.cleaned_pulses, "key": repr(key),
+                  "saturated_fraction": reference.saturated_fraction,
+                  "saturated_level_counts": reference.saturated_level_counts}
         (partial_folder / "counts.json").write_text(json.dumps(counts), encoding="utf-8")
         os.replace(partial_folder, folder)
     except BaseException:
@@ -231,7 +233,9 @@ def load_flat_reference(folder: str | os.PathLike, key: tuple = ()) -> FlatRefer
                          denominator=(np.load(denominator, mmap_mode="r", allow_pickle=False)
                                       if denominator.exists() else None),
                          scale=np.load(folder / "scale.npy", allow_pickle=False),
-                         n_flats=int(counts["n_flats"]), cleaned_pulses=int(counts["cleaned_pulses"]))
+                         n_flats=int(counts["n_flats"]), cleaned_pulses=int(counts["cleaned_pulses"]),
+                         saturated_fraction=float(counts["saturated_fraction"]),
+                         saturated_level_counts=float(counts["saturated_level_counts"]))
 
 
 def psf_kernel_key(psf_path: str | os.PathLike, source_to_object_mm: float, source_to_detector_mm: float) -> tuple:

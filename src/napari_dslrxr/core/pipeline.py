@@ -315,6 +315,12 @@ def _flatfield_stage(cleaned: np.ndarray, reference: FlatReference, results: dic
     if reference.denominator is None:
         results["warnings"].append(
             "no flat frame given: flat field not corrected (uneven illumination stays in the image)")
+    elif reference.saturated_fraction > 0:
+        results["flatfield"]["saturated_fraction"] = reference.saturated_fraction
+        results["warnings"].append(
+            f"flat frame saturated: {100 * reference.saturated_fraction:.1f} % of its pixels sit at its maximum "
+            f"({reference.saturated_level_counts:.0f} counts) in one channel, so the flat field is wrong there "
+            "(give flats exposed below the camera's white level)")
     return corrected
 
 

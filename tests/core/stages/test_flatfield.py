@@ -209,3 +209,17 @@ def test_no_rim_at_the_screen_border_with_a_smoothed_flat():
     interior = ndi.binary_erosion(lit, iterations=15)
     ratio = np.median(out[rim]) / np.median(out[interior])
     assert abs(ratio - 1.0) < 0.04, ratio
+
+
+def test_saturated_plateau_finds_a_clipped_channel_not_a_noisy_or_constant_one():
+    from napari_dslrxr.core.stages.flatfield import saturated_plateau
+
+    rng = np.random.default_rng(5)
+    noisy = rng.poisson(3000.0, (200, 300, 3)).astype(np.float32)
+    assert saturated_plateau([noisy])[0] == 0.0  # nothing clipped
+    assert saturated_plateau([np.full((50, 60), 1000.0, np.float32)])[0] == 0.0  # an ideal synthetic flat
+    clipped = noisy.copy()
+    clipped[:40, :, 1] = 3100.0  # 20 % of the green channel at the white level
+    clipped[..., 1] = np.minimum(clipped[..., 1], 3100.0)
+    share, level = saturated_plateau([noisy, clipped])
+    assert level == 3100.0 and share >= 0.2

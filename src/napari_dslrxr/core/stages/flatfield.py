@@ -87,6 +87,11 @@ class FlatReference:
         How many flat frames were combined.
     cleaned_pulses : int
         Pulse pixels replaced in the reference frames.
+    saturated_fraction : float
+        Largest share, over the flats and their channels, of pixels sitting at the frame's
+        maximum value (a clipped plateau: the flat field is wrong there); 0 when none.
+    saturated_level_counts : float
+        That maximum (counts); NaN when nothing is saturated.
     """
 
     offset: np.ndarray
@@ -94,6 +99,34 @@ class FlatReference:
     scale: np.ndarray
     n_flats: int = 0
     cleaned_pulses: int = 0
+    saturated_fraction: float = 0.0
+    saturated_level_counts: float = float("nan")
+
+
+#: A flat channel counts as clipped when more than this share of its pixels sit exactly at its
+#: maximum (a noisy exposure repeats its maximum on a handful of pixels at most), but not all of
+#: them (a constant synthetic flat is not a clipped one).
+SATURATED_FLAT_FRACTION = 0.001
+
+
+def saturated_plateau(frames: Sequence[np.ndarray]) -> tuple[float, float]:
+    """Share of pixels at the maximum of the most clipped channel of ``frames``, and that level.
+
+    A camera clips at its white level, so an over-exposed flat has a plateau of identical
+    values at its maximum; returns ``(0.0, nan)`` when no channel has one above
+    :data:`SATURATED_FLAT_FRACTION` (or when a channel is constant).
+    """
+    worst, level = 0.0, float("nan")
+    for frame in frames:
+        arr = np.asarray(frame)
+        chans = arr.reshape(arr.shape[0], arr.shape[1], -1)
+        for c in range(chans.shape[2]):
+            plane = chans[..., c]
+            top = plane.max()
+            share = float(np.count_nonzero(plane == top)) / plane.size
+            if SATURATED_FLAT_FRACTION < share < 0.99 and share > worst:
+                worst, level = share, float(top)
+    return worst, level
 
 
 def remove_bright_pulses(frame: np.ndarray, threshold_sigma: float = 6.0,
@@ -304,6 +337,7 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
     if np.asarray(flats[0]).shape != tuple(shape):
         raise InputError("flat frame", f"shape {np.asarray(flats[0]).shape} differs from the radiograph's {tuple(shape)}")
     n_flats = len(flats)
+    saturated_fraction, saturated_level = saturated_plateau(flats)
     if n_flats == 1 and params.clean_flat_pulses:
         flat, n = _clean_single_frame(flats[0], "flat frame", _channel_levels(offset), params, check=steps.check)
         cleaned += n
@@ -334,7 +368,8 @@ def prepare_flat_reference(shape: tuple[int, ...], *, flats: Sequence[np.ndarray
     np.maximum(chans, floors, out=chans)
     steps.advance()
     return FlatReference(offset=offset, denominator=denominator, scale=scale,
-                         n_flats=n_flats, cleaned_pulses=cleaned)
+                         n_flats=n_flats, cleaned_pulses=cleaned, saturated_fraction=saturated_fraction,
+                         saturated_level_counts=saturated_level)
 
 
 # A pixel belongs to the flat's lit area above this fraction of its bright level (the 99.5th
