@@ -143,7 +143,7 @@ def _scene_for(geometry: gen.Geometry, thickness: np.ndarray):
                        thickness=thickness)
 
 
-def run_case(case: dict) -> dict:
+def run_case(case: dict, progress=None) -> dict:
     from napari_dslrxr.core.diagnosis import DiagnosisOptions, diagnose_scene
 
     geometry, camera = gen.Geometry(), gen.Camera()
@@ -180,7 +180,7 @@ def run_case(case: dict) -> dict:
     out = gen.render(geometry, camera, rec)
     scene = _scene_for(geometry, out["thickness_scene"])
     t0, c0 = time.perf_counter(), time.process_time()
-    result = diagnose_scene(scene, out["recording"], DiagnosisOptions(max_terms=3))
+    result = diagnose_scene(scene, out["recording"], DiagnosisOptions(max_terms=3), progress)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     named = [a.effect for a in result.added]
     return {**{k: v for k, v in case.items() if k not in ("nuisance",)},
