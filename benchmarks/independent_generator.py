@@ -277,9 +277,10 @@ def effect_signal(geometry: Geometry, camera: Camera, case: Recording) -> tuple[
 
 def effect_signal_after_base_refit(geometry: Geometry, camera: Camera, case: Recording) -> tuple[float, float]:
     """As :func:`effect_signal`, but after the best *linearised* refit of every base-model
-    parameter the diagnosis fits (offset, gain, attenuation, blur width): what is left for a
-    library term to explain. Attenuation and blur absorb much of beam hardening, scatter and
-    glare, so this SNR is the one that sets their detectability."""
+    parameter the diagnosis fits (offset, gain, attenuation, blur width, and the registration:
+    shift, magnification, rotation): what is left for a library term to explain. Attenuation
+    and blur absorb much of beam hardening, scatter and glare, the magnification much of a lens
+    distortion, so this SNR is the one that sets their detectability."""
     from dataclasses import replace as _replace
 
     null = _without_effects(case)
@@ -288,5 +289,10 @@ def effect_signal_after_base_refit(geometry: Geometry, camera: Camera, case: Rec
     d_mu = render(geometry, camera, _replace(null, mu_scale=1.001))["expected"] - e0
     d_blur = render(_replace(geometry, detector_sigma_mm=geometry.detector_sigma_mm * 1.01), camera,
                     null)["expected"] - e0
+    registration = [render(geometry, camera, _replace(null, **change))["expected"] - e0
+                    for change in ({"shift_px": (null.shift_px[0] + 0.01, null.shift_px[1])},
+                                   {"shift_px": (null.shift_px[0], null.shift_px[1] + 0.01)},
+                                   {"scale": null.scale + 1e-4},
+                                   {"rotation_deg": null.rotation_deg + 0.01})]
     with_effect = _banding_and_ripple(render(geometry, camera, case)["expected"], case)
-    return _residual_after_refit([e0, d_mu, d_blur], with_effect, base["sd"])
+    return _residual_after_refit([e0, d_mu, d_blur, *registration], with_effect, base["sd"])

@@ -223,3 +223,23 @@ def test_noise_model_estimate_recovers_variance_law_and_correlation(rng):
     assert 64 * np.var(blocks) == pytest.approx(1.0, abs=0.15)
     raw_blocks = unit.reshape(64, 8, 32, 8).mean(axis=(1, 3))
     assert 64 * np.var(raw_blocks) > 4.0  # unwhitened, the same blocks look 4× too significant
+
+
+def test_banding_is_reported_only_when_the_found_terms_leave_it():
+    # the sample scene (128²): veiling glare makes sharp line-to-line changes of the base
+    # residual along the object's edges, which the banding pre-test also sees; after the search
+    # the glare explains them and no banding may be reported
+    scene = make_scene(128)
+    glare, _ = simulate_recording(scene, effects={"veiling_glare": {"eta": 0.05}}, seed=3)
+    result = diagnose_scene(scene, glare)
+    assert [a.effect for a in result.added] == ["veiling_glare"]
+    assert not any("banding" in s for s in result.signatures), result.signatures
+    # real read-out banding on a null recording: per-row offsets of 15 DN (a quarter of the
+    # open-beam noise sigma; integrated SNR about 30)
+    null, _ = simulate_recording(scene, seed=3)
+    rows = np.random.default_rng(7).normal(0.0, 15.0, (128, 1))
+    result = diagnose_scene(scene, (null + rows).astype(np.float32))
+    assert result.added == [] and result.unexplained
+    # and nothing else: no column banding, and the rows removed cleanly (the noise model is
+    # re-estimated without them), so no smooth light, radial or localised structure
+    assert len(result.signatures) == 1 and result.signatures[0].startswith("row banding"), result.signatures

@@ -12,7 +12,7 @@ import numpy as np
 from ..simulation.physics_terms import ChainGrid, PhysicsTerm, get_term
 from .fitting import Layout, Problem, covariance, orthonormal
 from .result import AddedTerm, DiagnosisOptions
-from .terms import GENERIC_SIGNATURE, SMOOTH_ADDITIVE, physical_bounds, probe_params
+from .terms import GENERIC_SIGNATURE, SMOOTH_ADDITIVE, SMOOTH_WARP, physical_bounds, probe_params
 
 
 def _candidate_columns(problem: Problem, layout: Layout, x: np.ndarray, term: PhysicsTerm,
@@ -86,6 +86,29 @@ class _Trial:
                 "score": round(float(self.score), 2)}
 
 
+#: Fractions of the start value of a term's main amplitude tried before the local refit.
+_LINE_SEARCH_FRACTIONS = (1.0, 0.5, 0.25, 0.12, 0.06, 0.03)
+
+
+def _line_search_main(problem: Problem, layout: Layout, x0: np.ndarray, term: PhysicsTerm) -> np.ndarray:
+    """Start the refit from the best of a few fractions of the main amplitude's start value.
+    Where the effect is even in its amplitude (two focal-spot lobes at ±a) the gradient vanishes
+    at the null and a start far above the true value lets the local fit run into the null and
+    stay there; the one-step estimate only fixes the start of terms linear in their amplitude."""
+    i = next((j for j, (owner, key) in enumerate(layout.names) if owner == term.name and key == term.main), None)
+    null = term.spec(term.main).null
+    if i is None or x0[i] == null:
+        return x0
+    best, best_chi2 = x0, float(np.sum(problem.whitened(layout, x0) ** 2))
+    for fraction in _LINE_SEARCH_FRACTIONS[1:]:
+        x = x0.copy()
+        x[i] = null + fraction * (x0[i] - null)
+        chi2 = float(np.sum(problem.whitened(layout, x) ** 2))
+        if chi2 < best_chi2:
+            best, best_chi2 = x, chi2
+    return best
+
+
 def _refit_with(problem: Problem, layout: Layout, x: np.ndarray, chi2_now: float, term: PhysicsTerm,
                 start: dict, opts: DiagnosisOptions, log_n: float) -> _Trial:
     new_layout = Layout.build(layout.base_fixed, layout.terms + [term], problem.model.grid, layout.free_base)
@@ -93,6 +116,7 @@ def _refit_with(problem: Problem, layout: Layout, x: np.ndarray, chi2_now: float
     new_layout.lower[:nb] = layout.lower[:nb]
     base_cur, current = layout.unpack(x)
     x0 = new_layout.pack(base_cur, {**{t.name: p for t, p in current}, term.name: start})
+    x0 = _line_search_main(problem, new_layout, x0, term)
     x_ext, chi2_ext, jac_ext = problem.fit(new_layout, x0, max_nfev=opts.max_nfev)
     delta_bic = chi2_now - chi2_ext - len(term.params) * log_n
     return _Trial(term, new_layout, x_ext, chi2_ext, jac_ext, float(delta_bic))
@@ -115,6 +139,9 @@ def _start_from_candidate(term: PhysicsTerm, cand: dict, grid: ChainGrid) -> dic
 #: signatures a smooth field does not produce (a smooth field does absorb a wide scatter in a
 #: small field, so scatter is not held to this test).
 SMOOTH_FIELD_TERMS = frozenset({"heel_effect", "inverse_square", "vignetting"})
+#: Terms that are a smooth displacement of the image, which a keystone (tilted sensor or
+#: screen) could mimic: accepted only if their refit beats a generic warp by BIC.
+GEOMETRIC_TERMS = frozenset({"lens_distortion"})
 
 
 def _delta_bic_beyond(problem: Problem, trial: _Trial, additive: _Trial, opts: DiagnosisOptions,
@@ -185,8 +212,28 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
         additive = _refit_with(problem, layout, x, chi2_now, SMOOTH_ADDITIVE, SMOOTH_ADDITIVE.null_params(),
                                opts, log_n)
         comparison.append({**additive.summary(), "generic": True})
-    only_smooth_light = 0
+    warp = None
+    if any(t.term.name in GEOMETRIC_TERMS for t in passing):
+        warp = _refit_with(problem, layout, x, chi2_now, SMOOTH_WARP, SMOOTH_WARP.null_params(), opts, log_n)
+        comparison.append({**warp.summary(), "generic": True})
+    only_smooth_light = only_warp = 0
+    # generic fields that explained more than an earlier candidate: a later (weaker) candidate
+    # must still gain ΔBIC > threshold on top of them, or it is only absorbing a part of the
+    # out-of-library structure
+    rejecting: list[_Trial] = []
     for i, winner in enumerate(passing):
+        if winner.term.name in GEOMETRIC_TERMS and warp.delta_bic > winner.delta_bic + opts.accept_delta_bic:
+            say(f"{winner.term.name}: a generic smooth warp explains more (ΔBIC {warp.delta_bic:.1f} against "
+                f"{winner.delta_bic:.1f}) — not accepted")
+            only_warp += 1
+            rejecting.append(warp)
+            continue
+        beyond_generic = [(g, _delta_bic_beyond(problem, winner, g, opts, log_n)) for g in rejecting]
+        if any(b <= opts.accept_delta_bic for _, b in beyond_generic):
+            g, b = min(beyond_generic, key=lambda gb: gb[1])
+            say(f"{winner.term.name}: ΔBIC {b:.1f} beyond the generic {g.term.name}, which explains "
+                f"more — not accepted")
+            continue
         beyond = (_delta_bic_beyond(problem, winner, additive, opts, log_n)
                   if winner.term.name in SMOOTH_FIELD_TERMS else float("inf"))
         if np.isfinite(beyond):
@@ -197,6 +244,7 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
                 say(f"{winner.term.name}: ΔBIC {beyond:.1f} beyond a smooth additive light field, which "
                     f"explains more — not accepted")
                 only_smooth_light += 1
+                rejecting.append(additive)
                 continue
             # as good as the 14-parameter generic field and simpler: named, but not separable
             # from additive light in this recording
@@ -214,7 +262,8 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
         say(f"added {winner.term.name} ΔBIC {winner.delta_bic:.1f} (runner-up "
             f"{added.runner_up or '—'}) held-out gain {gain:.1f}")
         return winner, added, comparison, None
-    signature = GENERIC_SIGNATURE["smooth_additive"] if only_smooth_light else None
+    signature = (GENERIC_SIGNATURE["smooth_additive"] if only_smooth_light
+                 else GENERIC_SIGNATURE["smooth_warp"] if only_warp else None)
     return None, None, comparison, signature
 
 

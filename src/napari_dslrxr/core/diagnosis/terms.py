@@ -6,8 +6,9 @@
   describe are a fraction of a pixel, where the first-order form is accurate). Without them a
   0.1 px shift or a 0.05 % magnification error leaves edge dipoles that library terms absorb.
 * **Generic smooth competitors** (never named as physics): a multiplicative and an additive
-  2-D Legendre surface of degree 4. A library term is only credited with a smooth mismatch if
-  it explains it better (by BIC) than these do; otherwise the mismatch is reported unexplained.
+  2-D Legendre surface of degree 4, and a displacement field of degree 2-3. A library term is
+  only credited with a smooth mismatch if it explains it better (by BIC) than these do;
+  otherwise the mismatch is reported unexplained.
 * **Physical bounds** of library terms from the scene (SDD, field size, plausible lenses and
   physical magnitudes), tighter than the library's generic prior ranges.
 """
@@ -96,10 +97,33 @@ SMOOTH_GAIN = PhysicsTerm("smooth_gain", "optics", _COEFS, "c00", _apply_smooth_
                           physics="Generic smooth multiplicative field (not physics: a competitor).")
 SMOOTH_ADDITIVE = PhysicsTerm("smooth_additive", "camera", _COEFS, "c00", _apply_smooth_additive,
                               physics="Generic smooth additive light (not physics: a competitor).")
-GENERIC_COMPETITORS = (SMOOTH_GAIN, SMOOTH_ADDITIVE)
+
+#: Monomials x^i y^j of the generic warp: total degree 2 and 3 (degree 0 and 1 are the
+#: registration's shift, scale and rotation).
+_WARP_POWERS = tuple((i, d - i) for d in (2, 3) for i in range(d + 1))
+
+
+def _apply_smooth_warp(state: ChainState, p: dict) -> None:
+    g = state.grid
+    gy, gx = state.light_gradient()
+    dx = sum(p[f"x{k:02d}"] * g.x**i * g.y**j for k, (i, j) in enumerate(_WARP_POWERS))
+    dy = sum(p[f"y{k:02d}"] * g.x**i * g.y**j for k, (i, j) in enumerate(_WARP_POWERS))
+    state.light = state.light - (gx * dx + gy * dy)  # first order, displacements in pixels
+
+
+SMOOTH_WARP = PhysicsTerm(
+    "smooth_warp", "optics",
+    tuple(P(f"{axis}{k:02d}", 0.0, (-3.0, 3.0), 0.0, 1e-3, unit="px")
+          for axis in "xy" for k in range(len(_WARP_POWERS))),
+    "x00", _apply_smooth_warp,
+    physics="Generic smooth geometric distortion, displacements of degree 2-3 (not physics: a "
+            "competitor of lens distortion).")
+GENERIC_COMPETITORS = (SMOOTH_GAIN, SMOOTH_ADDITIVE, SMOOTH_WARP)
 GENERIC_SIGNATURE = {"smooth_gain": "smooth multiplicative field not matching any library term",
                      "smooth_additive": "smooth additive light (stray light / haze) not matching "
-                                        "any library term"}
+                                        "any library term",
+                     "smooth_warp": "smooth geometric distortion (keystone, tilted sensor or "
+                                    "screen) not matching any library term"}
 
 
 def inverse_square_strength(grid: ChainGrid) -> float:
