@@ -218,9 +218,6 @@ def measure(where: Path | None = None) -> dict:
     freeze = getattr(view_command, "freeze_startup_objects", None)  # absent in older versions (baselines)
     if freeze is not None:
         freeze()  # as ``dslrxr view`` does once the viewer is open
-    prewarm = getattr(view_command, "prewarm_text_glyphs", None)  # likewise (absent in older versions)
-    if prewarm is not None:
-        prewarm(viewer)  # its timer turns fall in the idle measurement that follows
     layers, w = viewer.layers, plugin.widgets
     w["Impulse removal"]._image.value = layers["DSLR radiograph"]
     flat = w["Flat field"]

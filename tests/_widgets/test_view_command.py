@@ -71,19 +71,3 @@ def test_startup_objects_are_left_out_of_later_collections():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "frozen" in done.stdout
-
-
-def test_canvas_text_glyphs_are_rendered_ahead_in_small_turns(make_napari_viewer, qtbot):
-    """``dslrxr view`` renders the canvas font's glyphs while idle, a few per timer turn, so a
-    label shown later (the diagnosis' "before"/"after") renders none on the GUI thread."""
-    from napari_dslrxr._cli.view import CANVAS_TEXT_CHARACTERS, GLYPHS_PER_TURN, prewarm_text_glyphs
-
-    viewer = make_napari_viewer()
-    font_info = viewer.window._qt_viewer.canvas.font_info
-    font_info = font_info() if callable(font_info) else font_info
-    font = font_info.font_manager.get_font(font_info.face)
-    timer = prewarm_text_glyphs(viewer, interval_ms=5)
-    assert timer is not None and len(font._glyphs) <= GLYPHS_PER_TURN  # nothing rendered before the first turn
-    qtbot.waitUntil(lambda: not timer.isActive(), timeout=30_000)
-    assert set("before (scene as given)after (+ veiling glare)") <= set(font._glyphs)
-    assert set(CANVAS_TEXT_CHARACTERS) <= set(font._glyphs)

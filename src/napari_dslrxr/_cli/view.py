@@ -6,7 +6,6 @@ it. Files are checked before any window opens: a missing file is a one-line erro
 
 from __future__ import annotations
 
-import string
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -153,50 +152,6 @@ def freeze_startup_objects() -> None:
     gc.freeze()
 
 
-#: Characters of the text the widgets put on the canvas (the diagnosis map labels).
-CANVAS_TEXT_CHARACTERS = string.ascii_letters + string.digits + " ()+-.,:"
-#: Glyphs rendered per event-loop turn while pre-warming (about 6 ms each under software GL).
-GLYPHS_PER_TURN = 2
-
-
-def prewarm_text_glyphs(viewer: napari.Viewer, characters: str = CANVAS_TEXT_CHARACTERS,
-                        interval_ms: int = 40) -> object | None:
-    """Render the canvas font's glyphs of ``characters`` while the viewer is idle.
-
-    napari draws canvas text (the diagnosis' "before"/"after" labels) from one glyph atlas
-    per canvas, rendering each new character on the GUI thread the first time it is drawn
-    (a signed distance field, about 6 ms each: 0.15 s for a label's 25 characters, in the
-    turn that shows it). Here they are rendered ahead, ``GLYPHS_PER_TURN`` per timer turn
-    after start-up (a few milliseconds per turn, about 1.5 s in all), so showing a label
-    later renders nothing new. Uses napari's canvas internals, so only for the viewer this
-    command owns; if they change, nothing is pre-warmed. Returns the timer (None if not
-    started).
-    """
-    try:
-        font_info = viewer.window._qt_viewer.canvas.font_info
-        font_info = font_info() if callable(font_info) else font_info
-        font = font_info.font_manager.get_font(font_info.face)
-        parent = viewer.window._qt_viewer
-    except (AttributeError, TypeError):
-        return None
-    from qtpy.QtCore import QTimer
-
-    pending = list(dict.fromkeys(characters))
-    timer = QTimer(parent)
-    timer.setInterval(interval_ms)
-
-    def render_some() -> None:
-        for char in pending[:GLYPHS_PER_TURN]:
-            font[char]  # renders the glyph into the shared atlas once
-        del pending[:GLYPHS_PER_TURN]
-        if not pending:
-            timer.stop()
-
-    timer.timeout.connect(render_some)
-    timer.start()
-    return timer
-
-
 def register(app: typer.Typer) -> None:
     """Add ``dslrxr view`` to ``app``."""
 
@@ -219,7 +174,6 @@ def register(app: typer.Typer) -> None:
             viewer = napari.Viewer(title="dslrxr")
             populate_viewer(viewer, files, cfa_planes=cfa_planes, widgets=[] if no_widgets else None)
             freeze_startup_objects()
-            prewarm_text_glyphs(viewer)
             napari.run()
         finally:
             restore_reader_preferences(added)
