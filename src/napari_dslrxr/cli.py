@@ -123,7 +123,7 @@ def _run(argv: list[str] | None) -> int:
         check_flag_values(command, list(sys.argv[1:] if argv is None else argv))
         result = command.main(args=argv, prog_name="dslrxr", standalone_mode=False)
         if result == EXIT_INTERRUPTED:  # typer turns Ctrl-C into this exit code, silently
-            error_line("interrupted; finished outputs are kept, unfinished ones were not written")
+            error_line("interrupted")
     except typer.Exit as exc:
         return exc.exit_code
     except typer.Abort:

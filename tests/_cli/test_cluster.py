@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from napari_dslrxr.cli import main
@@ -78,13 +79,15 @@ def _sidecars_without_timings(out: Path) -> dict[str, dict]:
 
 
 def _assert_nothing_partial(out: Path) -> None:
-    """Every file under a final name is complete: an image's sidecar (when written) matches it."""
+    """Only complete outputs: no temporary file or reference folder left, and every image has the
+    sidecar that describes it."""
+    names = sorted(p.name for p in out.iterdir())
+    assert not [n for n in names if n.startswith(".")], names
     for path in sorted(out.iterdir()):
-        if path.name.startswith(".") or path.suffix == ".json":
+        if path.suffix == ".json":
             continue
         side = path.with_name(path.name + ".json")
-        if side.exists():
-            assert json.loads(side.read_text())["output"]["sha256"] == file_sha256(path), path.name
+        assert json.loads(side.read_text())["output"]["sha256"] == file_sha256(path), path.name
 
 
 @contextlib.contextmanager
@@ -357,3 +360,30 @@ def test_a_terminated_local_run_leaves_no_shared_reference_and_nothing_partial(t
     assert run.returncode == 130 and "Traceback" not in stderr, stderr  # an interruption, as Ctrl-C
     assert not [p.name for p in out.iterdir() if p.name.startswith(".dslrxr-reference-")]
     _assert_nothing_partial(out)
+
+
+def test_a_long_lived_worker_never_serves_a_reference_from_a_replaced_flat(tmp_path):
+    """A dask worker outlives a run and keeps its prepared references; when the flat file is
+    replaced between two runs (same path), the second run must use the new flat, as a fresh
+    ``--jobs 1`` run does (it had served the old one, with the new flat's checksum recorded)."""
+    from napari_dslrxr._cli import cluster
+    from napari_dslrxr.core.params import PipelineParams, params_to_dict
+
+    frames = make_dslr_radiograph((160, 240), seed=3)
+    shot = write_tiff(tmp_path / "shot.tif", frames.raw_rgb)
+    flat = write_tiff(tmp_path / "flat.tif", frames.flat)
+
+    def job(name: str) -> dict:
+        (tmp_path / name).mkdir()
+        return {"input": str(shot), "out_dir": str(tmp_path / name), "params": params_to_dict(PipelineParams()),
+                "flats": [str(flat)], "darks": [], "psf": None, "sod": None, "sdd": None, "patient": {},
+                "shared_reference": None}
+
+    assert cluster._run_on_worker(job("first"))[1]
+    ramp = np.linspace(0.5, 1.0, frames.flat.shape[1])[None, :, None]
+    write_tiff(flat, (frames.flat * ramp).astype(frames.flat.dtype))  # the next day's flat, same name
+    assert cluster._run_on_worker(job("second"))[1]  # the same worker process
+    assert main(["run", str(shot), "--flat", str(flat), "-o", str(tmp_path / "fresh")]) == 0
+    second = (tmp_path / "second" / "shot_dslrxr.tif").read_bytes()
+    assert second == (tmp_path / "fresh" / "shot_dslrxr.tif").read_bytes()
+    assert second != (tmp_path / "first" / "shot_dslrxr.tif").read_bytes()

@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from ..core.errors import DslrxrError, ParameterError
-from .file_job import HEAP_ENVIRON
+from .file_job import HEAP_ENVIRON, remove_unfinished_outputs
 from .shared_reference import shared_reference, worker_reference
 
 #: Seconds to wait for an address given with ``--scheduler`` to answer.
@@ -216,6 +216,21 @@ def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
         before are complete; a rerun does the rest).
     """
     where = "a local dask cluster" if scheduler == "local" else f"the dask scheduler at {scheduler}"
+    unreported = {id(job): job for job in todo}  # an input may be listed twice
+    try:
+        _run_tasks(todo, scheduler, n_workers, report, where, unreported)
+    except KeyboardInterrupt:
+        if scheduler == "local":  # its workers were stopped with it: clean up after their files
+            remove_unfinished_outputs(list(unreported.values()))
+        else:  # tasks already running on the cluster's workers may still finish and write
+            print(f"dslrxr: files running on {where} may still be finished by its workers", file=sys.stderr)
+        raise
+
+
+def _run_tasks(todo: list[dict], scheduler: str, n_workers: int,
+               report: Callable[[int, tuple[str, bool, str, float, list[str]]], None], where: str,
+               unreported: dict) -> None:
+    """:func:`run_on_cluster`'s work; removes each file from ``unreported`` once reported."""
     finished = 0
     # the reference is prepared while the workers start and run their first files' impulse removal
     with shared_reference(todo, start=True) as shared, connect(scheduler, n_workers) as client:
@@ -251,6 +266,7 @@ def run_on_cluster(todo: list[dict], *, scheduler: str, n_workers: int,
                         raise ClusterError(f"lost the connection to {where}")
                     finished += 1
                     report(finished, outcome)
+                    unreported.pop(id(by_key[future.key]), None)
                     bar.advance(task)
                     future.release()
             with contextlib.suppress(Exception):

@@ -109,3 +109,35 @@ def process_one(job: dict, reference_cache: dict | None = None,
         return job["input"], False, str(exc), time.perf_counter() - t0, []
     except MemoryError:
         return job["input"], False, "out of memory", time.perf_counter() - t0, []
+
+
+def remove_unfinished_outputs(jobs: list[dict]) -> None:
+    """After an interruption, for the files ``jobs`` not reported finished: remove the temporary
+    files of stopped writes, and an output its sidecar does not describe (renamed into place,
+    then stopped before its sidecar), so only outputs a sidecar vouches for are left. Ctrl-C and
+    SIGTERM wait meanwhile (a second one would leave the clean-up half done)."""
+    import json
+    import signal
+
+    from ..core.files import output_paths
+    from ..core.io import file_sha256
+    from ..core.io.provenance import sidecar_path
+    from ..core.io.writers import remove_partial_writes
+    from ..core.params import params_from_dict
+
+    held = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for job in jobs:
+            for path in output_paths(job["input"], job["out_dir"], params_from_dict(job["params"])).values():
+                remove_partial_writes(path)
+                if not path.exists():
+                    continue
+                try:
+                    described = json.loads(sidecar_path(path).read_text())["output"]["sha256"] == file_sha256(path)
+                except (OSError, ValueError, KeyError, TypeError):
+                    described = False
+                if not described:
+                    path.unlink(missing_ok=True)
+    finally:
+        for sig, handler in held.items():
+            signal.signal(sig, handler)

@@ -10,7 +10,7 @@ from pathlib import Path
 import typer
 
 from ..core.errors import ParameterError
-from .file_job import freed_memory_kept, keep_freed_memory, process_one
+from .file_job import freed_memory_kept, keep_freed_memory, process_one, remove_unfinished_outputs
 from .shared_reference import shared_reference, sigterm_as_interrupt, worker_reference
 
 
@@ -26,14 +26,10 @@ def _init_worker() -> None:
     keep_freed_memory()
 
 
-def _stop_pool(pool: ProcessPoolExecutor, todo: list[dict], params) -> None:
-    """Cancel the files not started and stop the workers' running ones. A file is written under a
-    temporary name and renamed when complete, so a stopped file leaves no output; its temporary
-    files are removed here."""
+def _stop_pool(pool: ProcessPoolExecutor, unreported: list[dict]) -> None:
+    """Cancel the files not started and stop the workers' running ones; clean up after the jobs
+    not reported finished (:func:`~.file_job.remove_unfinished_outputs`)."""
     import multiprocessing
-
-    from ..core.files import output_paths
-    from ..core.io.writers import remove_partial_writes
 
     pool.shutdown(wait=False, cancel_futures=True)
     workers = multiprocessing.active_children()  # this command's children are the pool's workers
@@ -41,31 +37,7 @@ def _stop_pool(pool: ProcessPoolExecutor, todo: list[dict], params) -> None:
         worker.terminate()
     for worker in workers:
         worker.join()
-    _remove_unfinished_outputs(todo, params)
-
-
-def _remove_unfinished_outputs(todo: list[dict], params) -> None:
-    """After an interruption: remove the temporary files of stopped writes, and an output that
-    its sidecar does not describe (written, but stopped before its sidecar): only outputs whose
-    sidecar vouches for them are left."""
-    import json
-
-    from ..core.files import output_paths
-    from ..core.io import file_sha256
-    from ..core.io.provenance import sidecar_path
-    from ..core.io.writers import remove_partial_writes
-
-    for job in todo:
-        for path in output_paths(job["input"], job["out_dir"], params).values():
-            remove_partial_writes(path)
-            if not path.exists():
-                continue
-            try:
-                described = json.loads(sidecar_path(path).read_text())["output"]["sha256"] == file_sha256(path)
-            except (OSError, ValueError, KeyError, TypeError):
-                described = False
-            if not described:
-                path.unlink(missing_ok=True)
+    remove_unfinished_outputs(unreported)
 
 
 def _process_one_in_worker(job: dict) -> tuple[str, bool, str, float, list[str]]:
@@ -158,15 +130,16 @@ def _run_jobs(todo: list[dict], params) -> int:
     elif jobs > 1 and total > 1:
         with shared_reference(todo) as shared:
             pool = ProcessPoolExecutor(max_workers=min(jobs, total), initializer=_init_worker)
+            reported = 0  # the pool's outcomes come in the order of todo
             try:
                 # the workers start (fork) with the first job, before the thread preparing the reference
                 outcomes = pool.map(_process_one_in_worker,
                                     [{**job, "shared_reference": shared.folder} for job in todo])
                 shared.start()
-                for i, outcome in enumerate(outcomes, start=1):
-                    report(i, outcome)
+                for reported, outcome in enumerate(outcomes, start=1):
+                    report(reported, outcome)
             except BaseException:  # Ctrl-C, SIGTERM: stop now, not after the queued files
-                _stop_pool(pool, todo, params)
+                _stop_pool(pool, todo[reported:])
                 raise
             pool.shutdown()
     else:
@@ -177,7 +150,7 @@ def _run_jobs(todo: list[dict], params) -> int:
                 for i, job in enumerate(todo, start=1):
                     report(i, process_one(job, cache))
             except BaseException:  # Ctrl-C, SIGTERM
-                _remove_unfinished_outputs(todo[i - 1:i], params)
+                remove_unfinished_outputs(todo[i - 1:i])
                 raise
     return failed
 

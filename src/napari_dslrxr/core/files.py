@@ -180,10 +180,25 @@ def input_black_level(input_path: str | os.PathLike, params: PipelineParams):
     return 0.0 if Path(input_path).suffix.lower() in RAW_EXTENSIONS else params.flatfield.black_level_counts
 
 
+def _file_versions(paths: Sequence[str | os.PathLike]) -> tuple:
+    """Each path with its size and modification time (ns): a cache keyed by it never serves what
+    was prepared from an earlier version of the file (a dask worker outlives a run, and the user
+    may replace the flat between runs)."""
+    versions = []
+    for path in paths:
+        try:
+            info = os.stat(path)
+            versions.append((str(path), info.st_size, info.st_mtime_ns))
+        except OSError:  # reading it will say what is wrong
+            versions.append((str(path), None, None))
+    return tuple(versions)
+
+
 def flat_reference_key(flat_paths: Sequence[str | os.PathLike], dark_paths: Sequence[str | os.PathLike],
                        shape: tuple[int, ...], offset, params: PipelineParams) -> tuple:
-    """Key of a prepared :class:`FlatReference` in a ``reference_cache`` (see :func:`run_file`)."""
-    return (tuple(map(str, flat_paths)), tuple(map(str, dark_paths)), tuple(shape), repr(offset),
+    """Key of a prepared :class:`FlatReference` in a ``reference_cache`` (see :func:`run_file`):
+    the frames' paths and versions, the shape, the dark offset and the flat-field parameters."""
+    return (_file_versions(flat_paths), _file_versions(dark_paths), tuple(shape), repr(offset),
             repr(params.flatfield))
 
 
@@ -239,8 +254,9 @@ def load_flat_reference(folder: str | os.PathLike, key: tuple = ()) -> FlatRefer
 
 
 def psf_kernel_key(psf_path: str | os.PathLike, source_to_object_mm: float, source_to_detector_mm: float) -> tuple:
-    """Key of a PSF kernel in a ``reference_cache`` (see :func:`run_file`)."""
-    return ("psf", str(psf_path), float(source_to_object_mm), float(source_to_detector_mm))
+    """Key of a PSF kernel in a ``reference_cache`` (see :func:`run_file`): the model file's
+    path and version and the geometry."""
+    return ("psf", *_file_versions([psf_path]), float(source_to_object_mm), float(source_to_detector_mm))
 
 
 def _psf_kernel(psf_path: str | os.PathLike, source_to_object_mm: float | None,
