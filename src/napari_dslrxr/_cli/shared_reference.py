@@ -66,6 +66,19 @@ def _checksums_path(folder: Path) -> Path:
     return folder.with_name(folder.name + ".sha256")
 
 
+def _pending_path(folder: Path) -> Path:
+    """Beside the shared reference ``folder``: there while the command prepares it (made before
+    any file is given to a worker), so a worker that sees neither knows nothing is coming."""
+    return folder.with_name(folder.name + ".pending")
+
+
+def _prepare_then_unmark(job: dict, folder: Path) -> None:
+    try:
+        _prepare_shared_reference(job, folder)
+    finally:
+        _pending_path(folder).unlink(missing_ok=True)
+
+
 def _remove(path: Path) -> None:
     if path.is_dir():
         shutil.rmtree(path, ignore_errors=True)
@@ -85,7 +98,9 @@ def _remove_stale_references(out_dir: Path) -> None:
 def _command_here(folder: Path) -> int | None:
     """The process id of the command that makes the shared reference ``folder``, when it runs
     on this host (else None)."""
-    name = folder.name[len(SHARED_REFERENCE_PREFIX):].removesuffix(".partial").removesuffix(".sha256")
+    name = folder.name[len(SHARED_REFERENCE_PREFIX):]
+    for suffix in (".partial", ".sha256", ".pending"):
+        name = name.removesuffix(suffix)
     parts = name.rsplit("-", 2)
     if len(parts) == 3 and parts[0] == socket.gethostname() and parts[1].isdigit():
         return int(parts[1])
@@ -132,7 +147,8 @@ class SharedReference:
         if job["flats"] or job["darks"]:
             self.folder = str(out_dir / f"{SHARED_REFERENCE_PREFIX}{socket.gethostname()}-{os.getpid()}-"
                                         f"{uuid.uuid4().hex[:8]}")
-            self._thread = threading.Thread(target=_prepare_shared_reference, args=(job, Path(self.folder)),
+            _pending_path(Path(self.folder)).touch()
+            self._thread = threading.Thread(target=_prepare_then_unmark, args=(job, Path(self.folder)),
                                             name="dslrxr-shared-reference", daemon=True)
 
     def start(self) -> None:
@@ -146,7 +162,8 @@ class SharedReference:
         if self._thread.ident is not None:
             self._thread.join()  # a preparation under way finishes (seconds) so that its folder goes too
         folder = Path(self.folder)
-        for path in (folder, folder.with_name(folder.name + ".partial"), _checksums_path(folder)):
+        for path in (folder, folder.with_name(folder.name + ".partial"), _checksums_path(folder),
+                     _pending_path(folder)):
             _remove(path)
 
 
@@ -167,10 +184,15 @@ def shared_reference(todo: list[dict], *, start: bool = False) -> Iterator[Share
 
 def _wait_for(folder: Path) -> bool:
     """Wait until the command has written the shared reference ``folder`` (or made it empty);
-    False when the command is gone meanwhile (on this host) or after :data:`SHARED_REFERENCE_WAIT_S`."""
+    False at once when its pending mark is not there either (no shared file system, or the
+    command has ended), when the command is gone meanwhile (on this host), or after
+    :data:`SHARED_REFERENCE_WAIT_S`."""
     command = _command_here(folder)
+    pending = _pending_path(folder)
     deadline = time.monotonic() + SHARED_REFERENCE_WAIT_S
     while not folder.exists():
+        if not pending.exists():
+            return folder.exists()  # written just now, or never coming
         if time.monotonic() > deadline or (command is not None and not _process_alive(command)):
             return False
         time.sleep(0.02)
@@ -180,7 +202,7 @@ def _wait_for(folder: Path) -> bool:
 def worker_reference(folder: str | None):
     """For a worker's :func:`~napari_dslrxr.core.files.run_file` (its ``reference``): the shared
     reference in ``folder`` for the key asked, mapped read-only once the command has written it
-(and the reference files' checksums it computed, remembered);
+    (and the reference files' checksums it computed, remembered);
     None (the worker prepares its own) when there is none, the folder holds another key's
     reference, or the worker does not see the output folder (no shared file system: it does not
     wait then)."""
@@ -190,7 +212,7 @@ def worker_reference(folder: str | None):
         from ..core.files import load_flat_reference
         from ..core.io import remember_sha256
 
-        if folder is None or not Path(folder).parent.is_dir() or not _wait_for(Path(folder)):
+        if folder is None or not _wait_for(Path(folder)):
             return None
         with contextlib.suppress(OSError, ValueError, TypeError):
             remember_sha256(json.loads(_checksums_path(Path(folder)).read_text(encoding="utf-8")))
