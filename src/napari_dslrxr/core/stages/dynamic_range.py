@@ -67,7 +67,7 @@ class DynamicRangeParams:
     """
 
     enabled: bool = field(default=True, metadata={"help": "compress large-area (low-frequency) variation"})
-    latitude: float = field(default=0.8, metadata={
+    latitude: float = field(default=1.0, metadata={
         "help": "gain of large-area variation: lower shows thick and thin parts together; 1 = off",
         "unit": "gain", "min": 0.1, "max": 1.0})
     detail_gain: float = field(default=1.0, metadata={
