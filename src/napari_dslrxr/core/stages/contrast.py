@@ -45,8 +45,8 @@ two ``k`` whose ``gamma_k`` bracket the Gaussian pyramid's value there. Differen
 ``s`` from the local level are amplified by up to ``a``; differences well above ``s`` (the edge
 of a lung, an air gap, the skin line) get ``beta`` on both sides alike, so a strong edge is
 compressed (``beta`` < 1: latitude without a halo) but gets no overshoot. ``coarse_halo_step
-= 0`` maps the coarse bands like the fine ones (power law and 7 x 7 guard, the former
-behaviour). Measured in docs/safety.md ("Display without damage").
+= 0`` maps the coarse bands like the fine ones (power law with gain ``bone_contrast`` from
+level 1 on, and the 7 x 7 guard at ``halo_step``: the former behaviour). Measured in docs/safety.md ("Display without damage").
 """
 
 from __future__ import annotations
@@ -87,7 +87,8 @@ class ContrastParams:
     coarse_halo_step : float
         Range of the coarse bands' local Laplacian remapping (level 2 and coarser): differences
         from the local level below about this are raised by ``bone_contrast``, larger ones
-        (strong edges) get ``coarse_edge_gain`` on both sides, so no halo (0 to 2 VOI units); 0 = the power-law mapping and 7 x 7 guard of the fine bands there (halos).
+        (strong edges) get ``coarse_edge_gain`` on both sides, so no halo (0 to 2 VOI
+        units); 0 = the power-law mapping and 7 x 7 guard of the fine bands there (halos).
     coarse_edge_gain : float
         Gain of coarse differences well above ``coarse_halo_step`` (0.3 to 1): below 1
         compresses large steps (thick and thin parts shown together) without a halo.
@@ -317,8 +318,7 @@ def enhance_contrast(image: np.ndarray, params: ContrastParams | None = None,
         # the noise floor shrinks by ~2 per level (noise is roughly white); keep it per level
         level_noise = noise_level / (2.0**index)
         map_coefficients(band, gain=gain, power=power, max_coef=max_coef, noise_level=level_noise,
-                         edge_level=0.25 * float(params.halo_step if index < 2 else
-                                                 min(params.halo_step, coarse_step)))
+                         edge_level=0.25 * float(params.halo_step))
     coarse_bands = levels - (len(bands) - 1)
     if coarse_step > 0 and coarse_bands > 0:
         residual = bands[-1]
