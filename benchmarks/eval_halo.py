@@ -43,16 +43,17 @@ SETTINGS = {
     "default": {},
     "former defaults (power law and 7x7 guard in every band, latitude 0.8)": FORMER_DEFAULTS,
     "coarse remapping without compression (coarse_edge_gain 1)": {"contrast.coarse_edge_gain": 1.0},
+    "coarse remapping range 0.05": {"contrast.coarse_halo_step": 0.05},
     "coarse remapping range 0.08": {"contrast.coarse_halo_step": 0.08},
     "no enhancement (VOI + display curve only)": {"contrast.enabled": False, "dynamic_range.enabled": False},
 }
 
 
-def demo_halo_probe(shape=(600, 900)):
+def demo_halo_probe(shape=(600, 900), seed=0):
     """The demo frame and a function giving (bright band, dark rim, lung interior clipped) of a display image."""
     from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 
-    frames = make_dslr_radiograph(shape, seed=0)
+    frames = make_dslr_radiograph(shape, seed=seed)
     truth = frames.truth
     hs, ws = truth.attenuation.shape
     yy, xx = np.mgrid[0:hs, 0:ws].astype(np.float32)

@@ -66,8 +66,8 @@ def test_demo_has_no_halo_beside_the_lung_fields(demo):
     inputs = ("--flat", str(paths["flat"]), "--dark", str(paths["dark"]))
     display, results = _run(paths["radiograph"], folder / "out", *inputs)
     band, rim, interior_clipped = probe(display)
-    assert band <= 0.01, band  # measured 0.009 (the probe's floor, no enhancement: 0.005)
-    assert rim <= 0.01, rim  # measured -0.001 (none)
+    assert band <= 0.01, band  # measured 0.007 (the probe's floor, no enhancement: 0.005)
+    assert rim <= 0.01, rim  # measured -0.002 (none)
     assert interior_clipped == 0.0
     assert results["display"]["clipped_fraction"] <= 0.01
     # the same probe on the former defaults (gains on the linear coarse bands) sees their halo
@@ -112,12 +112,12 @@ def test_cr_anatomy_is_not_clipped(cr_scores, name):
 
 def test_chest_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):
     score = cr_scores["RG1_UNCR"]
-    assert score["gcf_ours"] > 1.1 * score["gcf_input"], score  # measured 2.83 -> 3.35
+    assert score["gcf_ours"] > 1.1 * score["gcf_input"], score  # measured 2.83 -> 3.22
     assert abs(score["gcf_clahe"] - score["gcf_ours"]) < 0.02 * score["gcf_ours"], score
-    assert score["noise_ours"] < score["noise_clahe"], score  # measured 1.17 vs 1.38
+    assert score["noise_ours"] < score["noise_clahe"], score  # measured 1.19 vs 1.34
 
 
-@pytest.mark.xfail(strict=True, reason="the leg's GCF stays below its stretched input's (2.96 vs 3.11): the "
+@pytest.mark.xfail(strict=True, reason="the leg's GCF stays below its stretched input's (2.95 vs 3.11): the "
                                        "value-of-interest window and curve already lose it (2.98) and the "
                                        "halo-free coarse remapping does not win it back")
 def test_leg_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):

@@ -111,7 +111,7 @@ class ContrastParams:
     halo_step: float = field(default=0.3, metadata={
         "help": "edges with a step above about this keep unit gain (no halo at strong edges); 0 = off",
         "unit": "VOI units", "min": 0.0, "max": 2.0})
-    coarse_halo_step: float = field(default=0.05, metadata={
+    coarse_halo_step: float = field(default=0.04, metadata={
         "help": "coarse bands: differences below about this are raised, larger ones (strong edges) keep "
                 "coarse_edge_gain, so no halo; 0 = power-law mapping there as in the fine bands",
         "unit": "VOI units", "min": 0.0, "max": 2.0})
