@@ -17,7 +17,8 @@ For each setting (default first, then the candidates named below):
 * GCF of the real CR chest and leg (``$DSLRXR_DATA/cr_dicom``) as :mod:`eval_contrast` scores
   it (input stretched within the exposed field, the largest box inside it), and the flat-patch
   noise ratio of ours and of CLAHE (``skimage.exposure.equalize_adapthist``) bisected to the
-  same GCF.
+  same GCF; and the same scores with every GCF taken on the largest box holding anatomy only
+  (``anatomy``: no direct exposure, see ``eval_contrast.anatomy_box``).
 
 Writes ``results/eval_halo.json``. Run: ``python benchmarks/eval_halo.py``.
 """
@@ -32,7 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _harness import record  # noqa: E402
-from eval_contrast import DATA, clahe_at_gcf, find_flat_patch, gcf, highpass_std, inner_box, stretch  # noqa: E402
+from eval_contrast import DATA, anatomy_box, find_flat_patch, inner_box, score_at_equal_gcf, stretch  # noqa: E402
 
 #: The display defaults before the coarse bands' local Laplacian remapping.
 FORMER_DEFAULTS = {"contrast.coarse_halo_step": 0.0, "contrast.bone_contrast": 2.0, "contrast.detail_contrast": 0.6,
@@ -108,7 +109,8 @@ def main() -> int:
             field = detect_collimation(image)
             shown = stretch(image, field.mask)
             crop = inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
-            radiographs[name] = (image, shown, crop, find_flat_patch(shown, crop=crop))
+            radiographs[name] = (image, shown, crop, find_flat_patch(shown, crop=crop),
+                                 anatomy_box(image, field.mask))
     rows = {}
     for label, setting in SETTINGS.items():
         params = params_for(setting)
@@ -116,16 +118,11 @@ def main() -> int:
         band, rim, interior = probe(result.display)
         row = {"setting": setting, "demo_bright_band": round(band, 4), "demo_dark_rim": round(rim, 4),
                "demo_lung_interior_clipped": round(interior, 4)}
-        for name, (image, shown, crop, patch) in radiographs.items():
+        for name, (image, shown, crop, patch, anatomy) in radiographs.items():
             done = process_display_radiograph(image, params=params)
-            ours = done.display
-            g_in, g_ours = gcf(shown[crop]), gcf(ours[crop])
-            _, clahe_out, g_clahe = clahe_at_gcf(shown, g_ours, crop)
-            noise_in = highpass_std(shown, patch)
-            row[name] = {"gcf_input": round(g_in, 3), "gcf_ours": round(g_ours, 3), "gcf_clahe": round(g_clahe, 3),
-                         "noise_ratio_ours": round(highpass_std(ours, patch) / noise_in, 3),
-                         "noise_ratio_clahe": round(highpass_std(clahe_out, patch) / noise_in, 3),
-                         "clipped_fraction": done.results["display"]["clipped_fraction"]}
+            row[name], _ = score_at_equal_gcf(shown, done.display, patch, crop)
+            row[name]["anatomy"], _ = score_at_equal_gcf(shown, done.display, patch, anatomy)
+            row[name]["clipped_fraction"] = done.results["display"]["clipped_fraction"]
         rows[label] = row
         print(label, row, flush=True)
     record("eval_halo", {"settings": rows})

@@ -5,8 +5,9 @@
   measured by the same probe, so the probe can see a halo;
 * the real CR chest (a DICOM through ``dslrxr run``): the anatomy's clipped fraction <= 1 %, the
   GCF rises over the stretched input, and flat-area noise grows less than with CLAHE at the
-  same GCF (the comparison of ``benchmarks/eval_contrast.py``); the leg does not reach its
-  input's GCF yet (strict xfail, so the day it does is noticed).
+  same GCF (the comparison of ``benchmarks/eval_contrast.py``); with the GCF taken over the
+  anatomy alone (no direct exposure) on the chest and the leg; on the whole exposed field the
+  leg does not reach its input's GCF (strict xfail, so the day it does is noticed).
 """
 
 from __future__ import annotations
@@ -85,23 +86,25 @@ def cr_scores(shared_data, tmp_path_factory):
     from napari_dslrxr.core.stages.collimation import detect_collimation
 
     scores = {}
+    plain = tmp_path_factory.mktemp("plain") / "no_enhancement.toml"
+    plain.write_text("[contrast]\nenabled = false\n[dynamic_range]\nenabled = false\n", encoding="utf-8")
     for name in ("RG1_UNCR", "RG3_UNCR"):
         source = shared_data / "cr_dicom" / f"{name}.dcm"
         if not source.exists():
             pytest.skip(f"{source} is absent")
         display, results = _run(source, tmp_path_factory.mktemp(name))
+        windowed, _ = _run(source, tmp_path_factory.mktemp(f"{name}_plain"), "-c", str(plain))
         image = read_image(source).data.astype(np.float32)
         field = detect_collimation(image)
         shown = eval_contrast.stretch(image, field.mask)
         crop = eval_contrast.inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
         patch = eval_contrast.find_flat_patch(shown, crop=crop)
-        g_in, g_ours = eval_contrast.gcf(shown[crop]), eval_contrast.gcf(display[crop])
-        _, clahe_out, g_clahe = eval_contrast.clahe_at_gcf(shown, g_ours, crop)
-        noise_in = eval_contrast.highpass_std(shown, patch)
-        scores[name] = {"gcf_input": g_in, "gcf_ours": g_ours, "gcf_clahe": g_clahe,
-                        "noise_ours": eval_contrast.highpass_std(display, patch) / noise_in,
-                        "noise_clahe": eval_contrast.highpass_std(clahe_out, patch) / noise_in,
-                        "clipped": results["display"]["clipped_fraction"]}
+        scores[name], _ = eval_contrast.score_at_equal_gcf(shown, display, patch, crop)
+        anatomy = eval_contrast.anatomy_box(image, field.mask)
+        scores[name]["anatomy"], _ = eval_contrast.score_at_equal_gcf(shown, display, patch, anatomy)
+        # the value-of-interest window and curve alone: what the enhancement adds is measured against it
+        scores[name]["anatomy"]["gcf_no_enhancement"] = eval_contrast.gcf(windowed[anatomy])
+        scores[name]["clipped"] = results["display"]["clipped_fraction"]
     return scores
 
 
@@ -114,12 +117,28 @@ def test_chest_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):
     score = cr_scores["RG1_UNCR"]
     assert score["gcf_ours"] > 1.1 * score["gcf_input"], score  # measured 2.83 -> 3.22
     assert abs(score["gcf_clahe"] - score["gcf_ours"]) < 0.02 * score["gcf_ours"], score
-    assert score["noise_ours"] < score["noise_clahe"], score  # measured 1.19 vs 1.34
+    assert score["noise_ratio_ours"] < score["noise_ratio_clahe"], score  # measured 1.19 vs 1.34
 
 
-@pytest.mark.xfail(strict=True, reason="the leg's GCF stays below its stretched input's (2.95 vs 3.11): the "
-                                       "value-of-interest window and curve already lose it (2.98) and the "
-                                       "halo-free coarse remapping does not win it back")
+@pytest.mark.parametrize("name, measured", [("RG1_UNCR", "2.81 -> 3.21 (window alone 2.74), noise 1.19 vs 1.34"),
+                                            ("RG3_UNCR", "3.01 -> 3.56 (window alone 3.37), noise 1.37 vs 1.72")])
+def test_cr_anatomy_gains_contrast_with_less_noise_than_clahe(cr_scores, name, measured):
+    """GCF on the largest box of anatomy only (no direct exposure): it rises, with less noise than CLAHE.
+
+    The leg's value-of-interest window alone already raises it (the window leaves out the direct
+    exposure), so the enhancement must also add to what the window gives.
+    """
+    score = cr_scores[name]["anatomy"]
+    assert score["gcf_ours"] > 1.1 * score["gcf_input"], (measured, score)
+    assert score["gcf_ours"] > 1.03 * score["gcf_no_enhancement"], (measured, score)
+    assert abs(score["gcf_clahe"] - score["gcf_ours"]) < 0.02 * score["gcf_ours"], (measured, score)
+    assert score["noise_ratio_ours"] < score["noise_ratio_clahe"], (measured, score)
+
+
+@pytest.mark.xfail(strict=True, reason="on the whole exposed field the leg's GCF stays below its stretched "
+                                       "input's (2.95 vs 3.11): the input's direct exposure (half the box) "
+                                       "shows its noise texture, ours shows it black; over the anatomy alone "
+                                       "it rises (test above)")
 def test_leg_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):
     score = cr_scores["RG3_UNCR"]
-    assert score["gcf_ours"] > score["gcf_input"] and score["noise_ours"] < score["noise_clahe"], score
+    assert score["gcf_ours"] > score["gcf_input"] and score["noise_ratio_ours"] < score["noise_ratio_clahe"], score
