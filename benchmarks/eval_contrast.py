@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _harness import record  # noqa: E402
 
-from napari_dslrxr.core.metrics import global_contrast_factor  # noqa: E402
+from napari_dslrxr.core.metrics import global_contrast_factor, largest_box  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("DSLRXR_DATA", REPO.parent / "shared" / "data"))
@@ -64,6 +64,21 @@ def inner_box(polygon_xy: np.ndarray, shape: tuple[int, int], margin_px: int = 4
     c0 = max(0, int(np.ceil(max(poly[0, 0], poly[3, 0]))) + margin_px)
     c1 = min(shape[1], int(np.floor(min(poly[1, 0], poly[2, 0]))) - margin_px)
     return np.s_[r0:r1, c0:c1]
+
+
+def anatomy_box(image: np.ndarray, field_mask: np.ndarray):
+    """Largest box inside the exposed field holding anatomy only (no direct exposure).
+
+    Anatomy as the pipeline's clipped fraction counts it (:func:`napari_dslrxr.core.display.anatomy_grid`:
+    inside the field, outside the direct exposure's outline); ``image`` is bone-bright, so
+    attenuation-like.
+    """
+    from napari_dslrxr.core.display import anatomy_grid
+    from napari_dslrxr.core.params import PipelineParams
+
+    step, anatomy = anatomy_grid(image, field_mask, PipelineParams())
+    box = largest_box(anatomy, step=4, margin_px=8)
+    return np.s_[box[0].start * step:box[0].stop * step, box[1].start * step:box[1].stop * step]
 
 
 def find_flat_patch(display: np.ndarray, size: int = 48, crop=np.s_[:, :]) -> tuple[int, int, int, int]:
@@ -130,20 +145,37 @@ def ours_at_gcf(enhance, target: float, crop) -> tuple[float, np.ndarray, float]
     return bisect_to_gcf(enhance, target, crop, 0.0, 3.0, 12)
 
 
-def compare(name: str, input_display: np.ndarray, ours: np.ndarray, patch, crop=np.s_[:, :],
-            enhance=None) -> dict:
-    """GCF and noise ratios of ours and CLAHE at equal GCF on one image; saves a PNG.
+def score_at_equal_gcf(input_display: np.ndarray, ours: np.ndarray, patch, crop) -> tuple[dict, np.ndarray]:
+    """GCF of input and ours on ``crop``, CLAHE bisected to our GCF there, flat-patch noise ratios.
 
-    Two matchings: CLAHE's clip limit tuned to our default output's GCF, and (when
-    ``enhance(t)`` is given) our strength tuned to CLAHE's GCF at its default clip limit 0.01.
+    Returns the scores and CLAHE's image.
     """
     g_in, g_ours = gcf(input_display[crop]), gcf(ours[crop])
     noise_in = highpass_std(input_display, patch)
     clip, cl_out, g_cl = clahe_at_gcf(input_display, g_ours, crop)
     row = {"gcf_input": round(g_in, 3), "gcf_ours": round(g_ours, 3), "gcf_clahe": round(g_cl, 3),
            "clahe_clip_limit": round(clip, 5), "noise_ratio_ours": round(highpass_std(ours, patch) / noise_in, 3),
-           "noise_ratio_clahe": round(highpass_std(cl_out, patch) / noise_in, 3), "flat_patch_rc": list(patch)}
+           "noise_ratio_clahe": round(highpass_std(cl_out, patch) / noise_in, 3)}
     row["pass"] = bool(row["gcf_ours"] > row["gcf_input"] and row["noise_ratio_ours"] < row["noise_ratio_clahe"])
+    return row, cl_out
+
+
+def compare(name: str, input_display: np.ndarray, ours: np.ndarray, patch, crop=np.s_[:, :],
+            enhance=None, anatomy=None) -> dict:
+    """GCF and noise ratios of ours and CLAHE at equal GCF on one image; saves a PNG.
+
+    Two matchings: CLAHE's clip limit tuned to our default output's GCF, and (when
+    ``enhance(t)`` is given) our strength tuned to CLAHE's GCF at its default clip limit 0.01.
+    With ``anatomy`` (a box holding anatomy only, see :func:`anatomy_box`) the first matching
+    is repeated with every GCF taken on that box (``row["anatomy"]``; ``row["pass"]`` stays the
+    exposed-field score).
+    """
+    row, cl_out = score_at_equal_gcf(input_display, ours, patch, crop)
+    row["flat_patch_rc"] = list(patch)
+    if anatomy is not None:
+        row["anatomy"], _ = score_at_equal_gcf(input_display, ours, patch, anatomy)
+        row["anatomy"]["box_rc"] = [anatomy[0].start, anatomy[1].start, anatomy[0].stop, anatomy[1].stop]
+    noise_in = highpass_std(input_display, patch)
     if enhance is not None:
         default_clahe = clahe(input_display, 0.01)
         g_default = gcf(default_clahe[crop])
@@ -199,7 +231,8 @@ def main() -> int:
             return enhance_radiograph(image, strength_params(t))
 
         rows[fname.split("_")[0]] = compare(fname.split("_")[0], input_display, ours,
-                                            find_flat_patch(input_display, crop=crop), crop, enhance=enhance)
+                                            find_flat_patch(input_display, crop=crop), crop, enhance=enhance,
+                                            anatomy=anatomy_box(image, field.mask))
         rows[fname.split("_")[0]]["collimation_detected"] = bool(field.detected)
     for seed in (0, 1):
         frames = make_dslr_radiograph((1200, 1800), seed=seed)

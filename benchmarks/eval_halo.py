@@ -7,12 +7,18 @@ For each setting (default first, then the candidates named below):
   value of a 6 px ring 3-60 px (at 1800 px width) outside the lungs, minus the mean of the ring
   70-100 px out, over soft tissue only (truth attenuation 1.05-1.6: no spine, bars or discs),
   as a share of the display range. With no enhancement at all it reads about 0.5 % (the
-  body's thickness variation): that is the metric's floor;
+  body's thickness variation): that is the metric's floor. The ring profile out to 180 px
+  (at 1800) shows the reference ring is beyond the former defaults' band (their profile is
+  back at the no-enhancement level by 60 px). The band's other side, a dark rim inside the
+  lungs, is measured the same way: the mean of the ring 60-90 px inside minus the smallest
+  mean of a 6 px ring 6-60 px inside (the first 6 px are the blurred edge itself);
 * the share of the lung interiors clipped to black or white;
+* the clipped fraction of the radiographs' anatomy the pipeline reports (``display.clipped_fraction``);
 * GCF of the real CR chest and leg (``$DSLRXR_DATA/cr_dicom``) as :mod:`eval_contrast` scores
   it (input stretched within the exposed field, the largest box inside it), and the flat-patch
   noise ratio of ours and of CLAHE (``skimage.exposure.equalize_adapthist``) bisected to the
-  same GCF.
+  same GCF; and the same scores with every GCF taken on the largest box holding anatomy only
+  (``anatomy``: no direct exposure, see ``eval_contrast.anatomy_box``).
 
 Writes ``results/eval_halo.json``. Run: ``python benchmarks/eval_halo.py``.
 """
@@ -27,24 +33,28 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _harness import record  # noqa: E402
-from eval_contrast import DATA, clahe_at_gcf, find_flat_patch, gcf, highpass_std, inner_box, stretch  # noqa: E402
+from eval_contrast import DATA, anatomy_box, find_flat_patch, inner_box, score_at_equal_gcf, stretch  # noqa: E402
+
+#: The display defaults before the coarse bands' local Laplacian remapping.
+FORMER_DEFAULTS = {"contrast.coarse_halo_step": 0.0, "contrast.bone_contrast": 2.0, "contrast.detail_contrast": 0.6,
+                   "dynamic_range.latitude": 0.8}
 
 #: name -> {"section.field": value}: the settings compared with the defaults.
 SETTINGS = {
     "default": {},
-    "coarse guard 0.03, latitude 1": {"contrast.coarse_halo_step": 0.03, "dynamic_range.latitude": 1.0},
-    "coarse guard 0.03, latitude 1, edge-aware detail x2 below 0.05": {
-        "contrast.coarse_halo_step": 0.03, "dynamic_range.latitude": 1.0, "dynamic_range.detail_gain": 2.0,
-        "dynamic_range.edge_step": 0.05},
+    "former defaults (power law and 7x7 guard in every band, latitude 0.8)": FORMER_DEFAULTS,
+    "coarse remapping without compression (coarse_edge_gain 1)": {"contrast.coarse_edge_gain": 1.0},
+    "coarse remapping range 0.05": {"contrast.coarse_halo_step": 0.05},
+    "coarse remapping range 0.08": {"contrast.coarse_halo_step": 0.08},
     "no enhancement (VOI + display curve only)": {"contrast.enabled": False, "dynamic_range.enabled": False},
 }
 
 
-def demo_halo_probe(shape=(600, 900)):
-    """The demo frame and a function giving (bright band, lung interior clipped) of a display image."""
+def demo_halo_probe(shape=(600, 900), seed=0):
+    """The demo frame and a function giving (bright band, dark rim, lung interior clipped) of a display image."""
     from napari_dslrxr.core.simulation.phantom import make_dslr_radiograph
 
-    frames = make_dslr_radiograph(shape, seed=0)
+    frames = make_dslr_radiograph(shape, seed=seed)
     truth = frames.truth
     hs, ws = truth.attenuation.shape
     yy, xx = np.mgrid[0:hs, 0:ws].astype(np.float32)
@@ -60,13 +70,17 @@ def demo_halo_probe(shape=(600, 900)):
     soft = (attenuation > 1.05) & (attenuation < 1.6)
     scale = shape[1] / 1800
 
-    def probe(display: np.ndarray) -> tuple[float, float]:
+    def probe(display: np.ndarray) -> tuple[float, float, float]:
         def ring(a, b):
             return float(display[(outside > a * scale) & (outside <= b * scale) & soft].mean())
 
+        def inner_ring(a, b):
+            return float(display[(inside > a * scale) & (inside <= b * scale) & (lung > 0)].mean())
+
         band = max(ring(a, a + 6) for a in range(3, 60, 6)) - ring(70, 100)
+        rim = inner_ring(60, 90) - min(inner_ring(a, a + 6) for a in range(6, 60, 6))
         interior = display[(inside > 2) & (lung > 0)]
-        return band, float(np.mean((interior <= 0.5 / 255) | (interior >= 254.5 / 255)))
+        return band, rim, float(np.mean((interior <= 0.5 / 255) | (interior >= 254.5 / 255)))
 
     return frames, probe
 
@@ -83,7 +97,7 @@ def params_for(setting: dict):
 
 def main() -> int:
     from napari_dslrxr.core.io import read_image
-    from napari_dslrxr.core.pipeline import enhance_radiograph, process_frame
+    from napari_dslrxr.core.pipeline import process_display_radiograph, process_frame
     from napari_dslrxr.core.stages.collimation import detect_collimation
 
     frames, probe = demo_halo_probe()
@@ -95,21 +109,20 @@ def main() -> int:
             field = detect_collimation(image)
             shown = stretch(image, field.mask)
             crop = inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
-            radiographs[name] = (image, shown, crop, find_flat_patch(shown, crop=crop))
+            radiographs[name] = (image, shown, crop, find_flat_patch(shown, crop=crop),
+                                 anatomy_box(image, field.mask))
     rows = {}
     for label, setting in SETTINGS.items():
         params = params_for(setting)
         result = process_frame(frames.raw_rgb, flats=[frames.flat], darks=[frames.dark], params=params)
-        band, interior = probe(result.display)
-        row = {"setting": setting, "demo_bright_band": round(band, 4), "demo_lung_interior_clipped": round(interior, 4)}
-        for name, (image, shown, crop, patch) in radiographs.items():
-            ours = enhance_radiograph(image, params)
-            g_in, g_ours = gcf(shown[crop]), gcf(ours[crop])
-            _, clahe_out, g_clahe = clahe_at_gcf(shown, g_ours, crop)
-            noise_in = highpass_std(shown, patch)
-            row[name] = {"gcf_input": round(g_in, 3), "gcf_ours": round(g_ours, 3), "gcf_clahe": round(g_clahe, 3),
-                         "noise_ratio_ours": round(highpass_std(ours, patch) / noise_in, 3),
-                         "noise_ratio_clahe": round(highpass_std(clahe_out, patch) / noise_in, 3)}
+        band, rim, interior = probe(result.display)
+        row = {"setting": setting, "demo_bright_band": round(band, 4), "demo_dark_rim": round(rim, 4),
+               "demo_lung_interior_clipped": round(interior, 4)}
+        for name, (image, shown, crop, patch, anatomy) in radiographs.items():
+            done = process_display_radiograph(image, params=params)
+            row[name], _ = score_at_equal_gcf(shown, done.display, patch, crop)
+            row[name]["anatomy"], _ = score_at_equal_gcf(shown, done.display, patch, anatomy)
+            row[name]["clipped_fraction"] = done.results["display"]["clipped_fraction"]
         rows[label] = row
         print(label, row, flush=True)
     record("eval_halo", {"settings": rows})

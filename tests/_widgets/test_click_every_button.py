@@ -37,6 +37,7 @@ from napari_dslrxr._widgets._jobs import EventLoopMonitor
 from napari_dslrxr._widgets._layers import viewer_camera
 from napari_dslrxr.core.psf.edge_images import MIN_ROI_PX
 from napari_dslrxr.core.qc import QcParams
+from napari_dslrxr.core.stages.contrast import ContrastParams
 from napari_dslrxr.core.errors import WorkCancelled
 from napari_dslrxr.core.io import write_tiff
 from napari_dslrxr.core.psf import PSFModel, load_psf, save_psf
@@ -504,7 +505,7 @@ def test_contrast_buttons(plugin, monkeypatch):
     widget._image.value = viewer.layers["DSLR radiograph"]
     widget._sliders[("contrast", "bone_contrast")].value = 2.9
     plugin.click(name, "Restore defaults")
-    assert widget.pipeline_params().contrast.bone_contrast == 2.0
+    assert widget.pipeline_params().contrast.bone_contrast == ContrastParams().bone_contrast
     release = gate(contrast_module, "render", monkeypatch)
     cancel_running(plugin, name, "Apply at full resolution", "Cancel", release, "DSLR radiograph contrast")
     monkeypatch.undo()
@@ -629,7 +630,7 @@ def test_parameter_file_buttons(plugin, tmp_path):
     plugin.click(name, "Save")
     assert "bone_contrast = 2.5" in path.read_text(encoding="utf-8")
     plugin.click(name, "Restore defaults")
-    assert contrast.pipeline_params().contrast.bone_contrast == 2.0
+    assert contrast.pipeline_params().contrast.bone_contrast == ContrastParams().bone_contrast
     plugin.click(name, "Load")
     assert contrast.pipeline_params().contrast.bone_contrast == 2.5
     plugin.check_all_clicked(name)

@@ -51,7 +51,12 @@ def test_latitude_and_bone_contrast_sliders(docked, phantom, wait_for_worker, er
 
     from napari_dslrxr.core.params import PipelineParams
 
-    widget.set_params({"dynamic_range": dataclasses.replace(PipelineParams().dynamic_range, max_clipped_percent=100.0)})
+    # and with the power-law mapping in the coarse bands (coarse_halo_step 0), which bone contrast and
+    # the halo guard act on everywhere; the default coarse remapping leaves the phantom's strong
+    # edges alone (tests/core/stages/test_contrast.py)
+    defaults = PipelineParams()
+    widget.set_params({"dynamic_range": dataclasses.replace(defaults.dynamic_range, max_clipped_percent=100.0),
+                       "contrast": dataclasses.replace(defaults.contrast, coarse_halo_step=0.0)})
     inner = cv2.erode(phantom.truth.screen_mask.astype(np.uint8), np.ones((25, 25), np.uint8)).astype(bool)
     plain = _apply(widget, wait_for_worker, latitude=1.0, detail_gain=1.0, bone_contrast=1.0,
                    detail_contrast=0.0, edge_sharpness=1.0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from napari_dslrxr.core.errors import InputError, ParameterError
-from napari_dslrxr.core.metrics import gcf_weights, global_contrast_factor, percentage_error
+from napari_dslrxr.core.metrics import gcf_weights, global_contrast_factor, largest_box, percentage_error
 
 
 def w(i: int) -> float:
@@ -129,3 +129,34 @@ def test_gcf_errors():
         global_contrast_factor(np.zeros((8, 8, 2)))
     with pytest.raises(InputError):
         global_contrast_factor(np.zeros((8, 8), np.int64))
+
+
+def _largest_box_area_brute_force(mask: np.ndarray) -> int:
+    """Every box tried: the largest all-True area (independent of the histogram scan)."""
+    best = 0
+    h, w = mask.shape
+    for r0 in range(h):
+        for r1 in range(r0 + 1, h + 1):
+            for c0 in range(w):
+                for c1 in range(c0 + 1, w + 1):
+                    if (r1 - r0) * (c1 - c0) > best and mask[r0:r1, c0:c1].all():
+                        best = (r1 - r0) * (c1 - c0)
+    return best
+
+
+def test_largest_box_matches_brute_force(rng):
+    for _ in range(20):
+        mask = rng.random((7, 9)) < 0.75
+        rows, cols = largest_box(mask)
+        area = (rows.stop - rows.start) * (cols.stop - cols.start)
+        assert mask[rows, cols].all()
+        assert area == _largest_box_area_brute_force(mask)
+
+
+def test_largest_box_step_and_margin():
+    mask = np.zeros((100, 120), bool)
+    mask[10:90, 20:60] = True  # a tall box
+    mask[40:50, 0:120] = True  # a wide thin one, smaller
+    assert largest_box(mask) == (slice(10, 90), slice(20, 60))
+    assert largest_box(mask, step=2, margin_px=4) == (slice(14, 86), slice(24, 56))
+    assert largest_box(np.zeros((5, 5), bool)) == (slice(0, 0), slice(0, 0))

@@ -92,11 +92,11 @@ def test_field_info_is_the_one_source_of_help_unit_and_range():
     from napari_dslrxr.core.params import params_to_toml
 
     info = field_info(ContrastParams, "bone_contrast")
-    assert (info["min"], info["max"], info["default"], info["unit"]) == (0.5, 3.0, 2.0, "gain")
+    assert (info["min"], info["max"], info["default"], info["unit"]) == (0.5, 6.0, 4.0, "gain")
     passes = field_info(ImpulseParams, "passes_h")
     assert (passes["min"], passes["max"], passes["default"]) == (0, 10, 3)
     text = params_to_toml()
     assert f"# {passes['help']} (unit: passes; range 0 to 10)" in text
-    assert f"# {info['help']} (unit: gain; range 0.5 to 3)" in text
+    assert f"# {info['help']} (unit: gain; range 0.5 to 6)" in text
     with pytest.raises(KeyError):
         field_info(ContrastParams, "no_such_field")

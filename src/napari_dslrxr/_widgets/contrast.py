@@ -58,7 +58,8 @@ SLIDERS = (
     ("dynamic_range", "latitude", "latitude", "low-frequency gain of dynamic-range reduction"),
     ("dynamic_range", "detail_gain", "detail gain", "gain above the low-pass kernel (unsharp masking)"),
     ("contrast", "detail_contrast", "fine detail", "MUSICA coefficient power p = 1 - 0.7 x value"),
-    ("contrast", "bone_contrast", "bone contrast", "gain of the mid and coarse Laplacian-pyramid bands"),
+    ("contrast", "bone_contrast", "bone contrast", "gain of coarse detail below the coarse halo step "
+                                                   "(local Laplacian remapping of the coarse bands)"),
     ("contrast", "edge_sharpness", "edge enhancement", "gain of the finest Laplacian-pyramid band"),
     ("contrast", "halo_step", "halo guard", "edge-step threshold of unit gain (0 = off)"),
 )

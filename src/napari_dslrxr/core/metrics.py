@@ -179,3 +179,30 @@ def global_contrast_factor(image: np.ndarray) -> float:
             level = cv2.resize(linear, (new_w, new_h), interpolation=cv2.INTER_AREA)
         contrasts.append(_mean_local_contrast(100.0 * np.sqrt(np.maximum(level, 0.0))))
     return float(np.dot(gcf_weights(), contrasts))
+
+
+def largest_box(mask: np.ndarray, *, step: int = 1, margin_px: int = 0) -> tuple[slice, slice]:
+    """Largest axis-aligned box holding only ``True`` pixels of ``mask``, as ``(rows, cols)`` slices.
+
+    Where a score such as the GCF is to be taken over the anatomy alone (no direct exposure,
+    no collimator band). The classic largest rectangle in a histogram, row by row, on the
+    ``step`` px grid; the box is shrunk by ``margin_px`` on each side. An empty mask gives an
+    empty box.
+    """
+    grid = np.asarray(mask, bool)[::step, ::step]
+    heights = np.zeros(grid.shape[1] + 1, np.int64)  # the trailing 0 empties the stack at each row's end
+    best = (0, 0, 0, 0, 0)  # area, first row, last row + 1, first col, last col + 1
+    for row in range(grid.shape[0]):
+        heights[:-1] = np.where(grid[row], heights[:-1] + 1, 0)
+        stack: list[int] = []
+        for col, height in enumerate(heights.tolist()):
+            while stack and heights[stack[-1]] >= height:
+                top = int(heights[stack.pop()])
+                start = stack[-1] + 1 if stack else 0
+                if top * (col - start) > best[0]:
+                    best = (top * (col - start), row + 1 - top, row + 1, start, col)
+            stack.append(col)
+    _, r0, r1, c0, c1 = best
+    rows = slice(r0 * step + margin_px, max(r0 * step + margin_px, r1 * step - margin_px))
+    cols = slice(c0 * step + margin_px, max(c0 * step + margin_px, c1 * step - margin_px))
+    return rows, cols

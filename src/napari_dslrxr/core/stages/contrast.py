@@ -27,14 +27,26 @@ coefficient is pulled back to 1 where the band holds a strong edge::
 the flanks of a strong edge get the same unit gain as its peak, and the edge keeps its
 shape) and ``e_l`` the peak coefficient of a step of ``halo_step`` value-of-interest units
 (a unit step's largest Laplacian coefficient is 0.23-0.38 at every level). Steps well below
-``halo_step`` (subtle detail, trabeculae, vessels) get the full power-law gain. In the
-coarse bands (level 2 and coarser) the overshoot is as wide as the band, a visible halo
-beside lucent areas; ``coarse_halo_step`` sets the threshold there. Its default equals
-``halo_step`` (0.3): lowering it trades contrast for halo. Measured (600 x 900 demo frame,
-bright band beside the lung fields as a share of the display range; GCF of the real CR
-chest and leg, inputs 2.83 and 1.50): 0.3 -> band 11 %, GCF 4.67 / 1.68; 0.15 -> 5.4 %,
-3.79 / 1.42; 0.1 -> 2.4 %, 3.28 / 1.29; 0.03 (with ``edge_step`` 0.1) -> 0.9 %, 2.53 / 1.20.
-No single value keeps the band under 1 % and the GCF above the input on both radiographs.
+``halo_step`` (subtle detail, trabeculae, vessels) get the full power-law gain.
+
+Coarse bands: a local Laplacian remapping. In the coarse bands (level 2 and coarser) any
+coefficient gain shows as a band as wide as the band (tens of pixels) beside every lucent or
+dense area, and the 7 x 7 guard either leaves that halo (threshold above the step) or takes
+the gain away from all structure near the step. So the coarse bands come from a fast local
+Laplacian filter (Paris, Hasinoff & Kautz 2011; Aubry et al. 2014) of the level-2 Gaussian
+image ``g_2``: for reference levels ``gamma_k`` spaced ``coarse_halo_step`` apart over the
+region's 0.5-99.5 % range of ``g_2``, the image remapped around ``gamma_k``::
+
+    r_k(v) = gamma_k + d * (beta + (a - beta) * exp(-d^2 / (2 s^2)))     d = v - gamma_k
+
+(``a`` = ``bone_contrast``, ``beta`` = ``coarse_edge_gain``, ``s`` = ``coarse_halo_step``) is
+decomposed into a Laplacian pyramid, and each output coefficient is interpolated between the
+two ``k`` whose ``gamma_k`` bracket the Gaussian pyramid's value there. Differences smaller than
+``s`` from the local level are amplified by up to ``a``; differences well above ``s`` (the edge
+of a lung, an air gap, the skin line) get ``beta`` on both sides alike, so a strong edge is
+compressed (``beta`` < 1: latitude without a halo) but gets no overshoot. ``coarse_halo_step
+= 0`` maps the coarse bands like the fine ones (power law with gain ``bone_contrast`` from
+level 1 on, and the 7 x 7 guard at ``halo_step``: the former behaviour). Measured in docs/safety.md ("Display without damage").
 """
 
 from __future__ import annotations
@@ -59,9 +71,11 @@ class ContrastParams:
         Strength of the enhancement of subtle detail, 0 (off) to 1 (strongest); sets the
         power ``p = 1 - 0.7 * detail_contrast`` of the coefficient mapping.
     bone_contrast : float
-        Gain of mid and coarse bands (bone, organ outlines), 0.5 to 3.
+        Gain of mid and coarse structure (bone, organ outlines) smaller than
+        ``coarse_halo_step``, 0.5 to 6 (the coarse bands' local Laplacian remapping; with
+        ``coarse_halo_step = 0`` the power-law gain of every band but the finest).
     edge_sharpness : float
-        Gain of the finest band (edges, fine texture), 0.5 to 3.
+        Gain of the fine bands (levels 0 and 1: edges, fine texture), 0.5 to 3.
     noise_floor : float
         Coefficients below this many noise standard deviations of the finest band keep unit
         gain (the linear segment near zero), 0 to 10.
@@ -71,19 +85,24 @@ class ContrastParams:
         Edges with a step larger than about this (value-of-interest units) keep unit gain, so
         strong edges get no halo; 0 = off (0 to 2).
     coarse_halo_step : float
-        The same for the coarse bands (level 2 and coarser), where a gain above 1 shows as a
-        halo as wide as the band (tens of pixels) beside any lucent or dense area, so a
-        smaller step already keeps unit gain there (0 to 2; never above ``halo_step``).
+        Range of the coarse bands' local Laplacian remapping (level 2 and coarser): differences
+        from the local level below about this are raised by ``bone_contrast``, larger ones
+        (strong edges) get ``coarse_edge_gain`` on both sides, so no halo (0 to 2 VOI
+        units); 0 = the power-law mapping and 7 x 7 guard of the fine bands there (halos).
+    coarse_edge_gain : float
+        Gain of coarse differences well above ``coarse_halo_step`` (0.3 to 1): below 1
+        compresses large steps (thick and thin parts shown together) without a halo.
     """
 
     enabled: bool = field(default=True, metadata={"help": "apply multiscale (MUSICA-style) contrast enhancement"})
-    detail_contrast: float = field(default=0.6, metadata={
+    detail_contrast: float = field(default=0.3, metadata={
         "help": "strength of subtle-detail enhancement: 0 = off, 1 = strongest (power p = 1 - 0.7 x this)",
         "unit": "strength", "min": 0.0, "max": 1.0})
-    bone_contrast: float = field(default=2.0, metadata={
-        "help": "gain of mid and coarse structures (bone, organ outlines)", "unit": "gain", "min": 0.5, "max": 3.0})
+    bone_contrast: float = field(default=4.0, metadata={
+        "help": "gain of mid and coarse structures (bone, organ outlines) below the coarse halo step",
+        "unit": "gain", "min": 0.5, "max": 6.0})
     edge_sharpness: float = field(default=1.0, metadata={
-        "help": "gain of the finest band (edges, fine texture)", "unit": "gain", "min": 0.5, "max": 3.0})
+        "help": "gain of the fine bands (edges, fine texture)", "unit": "gain", "min": 0.5, "max": 3.0})
     noise_floor: float = field(default=4.0, metadata={
         "help": "coefficients below this many noise sigmas (finest band) keep unit gain, so noise is not amplified",
         "unit": "sigma", "min": 0.0, "max": 10.0})
@@ -92,9 +111,13 @@ class ContrastParams:
     halo_step: float = field(default=0.3, metadata={
         "help": "edges with a step above about this keep unit gain (no halo at strong edges); 0 = off",
         "unit": "VOI units", "min": 0.0, "max": 2.0})
-    coarse_halo_step: float = field(default=0.3, metadata={
-        "help": "the same for the coarse bands (level 2 and coarser), where a gain shows as a wide halo",
+    coarse_halo_step: float = field(default=0.04, metadata={
+        "help": "coarse bands: differences below about this are raised, larger ones (strong edges) keep "
+                "coarse_edge_gain, so no halo; 0 = power-law mapping there as in the fine bands",
         "unit": "VOI units", "min": 0.0, "max": 2.0})
+    coarse_edge_gain: float = field(default=0.7, metadata={
+        "help": "gain of coarse differences above the coarse halo step: below 1 compresses strong steps "
+                "without a halo", "unit": "gain", "min": 0.3, "max": 1.0})
 
     def __post_init__(self) -> None:
         validate_fields(self, "contrast")
@@ -194,6 +217,69 @@ def map_coefficients(band: np.ndarray, *, gain: float, power: float, max_coef: f
     return band
 
 
+#: Most reference levels of the coarse bands' local Laplacian remapping (their spacing widens
+#: beyond ``coarse_halo_step`` when the image's range would need more).
+MAX_REFERENCE_LEVELS = 48
+
+
+def local_laplacian_bands(image: np.ndarray, n_bands: int, *, detail_gain: float, edge_gain: float,
+                          range_sigma: float, value_range: tuple[float, float]) -> list[np.ndarray]:
+    """Laplacian pyramid of a fast local Laplacian filter of ``image``: ``[b_0, ..., g_n]``.
+
+    Parameters
+    ----------
+    image : ndarray, float32, (H, W)
+    n_bands : int
+        Detail bands wanted (fewer when the image gets smaller than 4 px).
+    detail_gain : float
+        Gain ``a`` of differences from the local level much smaller than ``range_sigma``.
+    edge_gain : float
+        Gain ``beta`` of differences much larger than ``range_sigma``.
+    range_sigma : float
+        ``s`` of the remapping ``r(v) = g + d (beta + (a - beta) exp(-d^2 / 2 s^2))``, ``d = v - g``;
+        also the reference levels' spacing.
+    value_range : (float, float)
+        Range covered by reference levels; values beyond use the nearest level.
+
+    Returns
+    -------
+    list of ndarray
+        Detail bands then the Gaussian residual of ``image`` (unchanged), as
+        :func:`laplacian_pyramid` returns them, ready for :func:`reconstruct_pyramid`.
+    """
+    g = np.ascontiguousarray(image, np.float32)
+    lo, hi = float(value_range[0]), float(min(max(value_range[1], value_range[0]), np.finfo(np.float32).max))
+    spacing = max(float(range_sigma), (hi - lo) / (MAX_REFERENCE_LEVELS - 1), 1e-6)
+    count = max(2, int(np.ceil((hi - lo) / spacing)) + 1)
+    gauss = [g]
+    while len(gauss) <= n_bands and min(gauss[-1].shape) >= 4:
+        gauss.append(cv2.pyrDown(gauss[-1]))
+    n_bands = len(gauss) - 1
+    # position of each pyramid value among the reference levels (hat-function interpolation)
+    positions = [np.clip((level - np.float32(lo)) * np.float32(1.0 / spacing), 0, count - 1) for level in gauss[:-1]]
+    out = [np.zeros_like(level) for level in gauss[:-1]]
+    inv_two_s2 = np.float32(-0.5 / float(range_sigma) ** 2)
+    for k in range(count):
+        reference = np.float32(lo + k * spacing)
+        diff = g - reference
+        remapped = np.square(diff)
+        remapped *= inv_two_s2
+        np.exp(remapped, out=remapped)
+        remapped *= np.float32(detail_gain - edge_gain)
+        remapped += np.float32(edge_gain)
+        remapped *= diff
+        remapped += reference
+        bands = laplacian_pyramid(remapped, n_bands)
+        for band, acc, pos in zip(bands[:n_bands], out, positions):
+            weight = np.abs(pos - np.float32(k))
+            np.subtract(1.0, weight, out=weight)
+            np.maximum(weight, 0.0, out=weight)
+            weight *= band
+            acc += weight
+    out.append(gauss[-1])
+    return out
+
+
 def enhance_contrast(image: np.ndarray, params: ContrastParams | None = None,
                      mask: np.ndarray | None = None) -> np.ndarray:
     """MUSICA-style multiscale contrast enhancement of a VOI-scaled log image.
@@ -210,36 +296,50 @@ def enhance_contrast(image: np.ndarray, params: ContrastParams | None = None,
     -------
     ndarray, float32, (H, W)
         Enhanced image in the same units (identity when disabled or detail_contrast = 0
-        and all gains are 1).
+        and all gains, ``coarse_edge_gain`` included, are 1).
     """
     params = params or ContrastParams()
     x = np.asarray(image, np.float32)
     if not params.enabled:
         return x.copy()
     levels = params.levels or auto_levels(x.shape)
-    bands = laplacian_pyramid(x.copy(), levels)
     power = 1.0 - 0.7 * float(params.detail_contrast)
     noise_level = 0.0
     use_mask = mask is not None and mask.shape == x.shape and not mask.all()
+    coarse_step = float(params.coarse_halo_step)
+    # with the local Laplacian remapping, the power law maps only the fine bands (levels 0, 1)
+    bands = laplacian_pyramid(x.copy(), min(levels, 2) if coarse_step > 0 else levels)
     for index, band in enumerate(bands[:-1]):
-        # statistics from a regular subsample (about 1 Mpx): boolean indexing of a 24 Mpx band
-        # would cost more than the pyramid itself
-        step = max(1, int(np.sqrt(band.size / 1_000_000)))
-        sub = band[::step, ::step]
-        if use_mask:
-            full_step = step * (2**index)
-            sub_mask = mask[::full_step, ::full_step][: sub.shape[0], : sub.shape[1]]
-            sub = sub[: sub_mask.shape[0], : sub_mask.shape[1]]
-            sample = sub[sub_mask] if sub_mask.any() else sub.ravel()
-        else:
-            sample = sub.ravel()
+        sample = _region_sample(band, mask if use_mask else None, 2**index)
         if index == 0:
             noise_level = float(params.noise_floor) * robust_sigma(sample)
         max_coef = float(np.percentile(np.abs(sample), 99.5)) if sample.size else 1.0
-        gain = params.edge_sharpness if index == 0 else params.bone_contrast
+        gain = params.edge_sharpness if index == 0 or coarse_step > 0 else params.bone_contrast
         # the noise floor shrinks by ~2 per level (noise is roughly white); keep it per level
         level_noise = noise_level / (2.0**index)
         map_coefficients(band, gain=gain, power=power, max_coef=max_coef, noise_level=level_noise,
-                         edge_level=0.25 * float(params.halo_step if index < 2 else
-                                                 min(params.halo_step, params.coarse_halo_step)))
+                         edge_level=0.25 * float(params.halo_step))
+    coarse_bands = levels - (len(bands) - 1)
+    if coarse_step > 0 and coarse_bands > 0:
+        residual = bands[-1]
+        values = _region_sample(residual, mask if use_mask else None, 2 ** (len(bands) - 1))
+        lo, hi = (float(v) for v in np.percentile(values, [0.5, 99.5])) if values.size else (0.0, 1.0)
+        bands[-1] = reconstruct_pyramid(local_laplacian_bands(
+            residual, coarse_bands, detail_gain=float(params.bone_contrast),
+            edge_gain=float(params.coarse_edge_gain), range_sigma=coarse_step, value_range=(lo, hi)))
     return reconstruct_pyramid(bands)
+
+
+def _region_sample(band: np.ndarray, mask: np.ndarray | None, scale: int) -> np.ndarray:
+    """Values of a pyramid level (``scale`` = its subsampling) inside ``mask``, about 1 Mpx at most.
+
+    A regular subsample: boolean indexing of a 24 Mpx band would cost more than the pyramid itself.
+    """
+    step = max(1, int(np.sqrt(band.size / 1_000_000)))
+    sub = band[::step, ::step]
+    if mask is None:
+        return sub.ravel()
+    full_step = step * scale
+    sub_mask = mask[::full_step, ::full_step][: sub.shape[0], : sub.shape[1]]
+    sub = sub[: sub_mask.shape[0], : sub_mask.shape[1]]
+    return sub[sub_mask] if sub_mask.any() else sub.ravel()

@@ -46,7 +46,8 @@ class DynamicRangeParams:
         Apply the low-frequency compression.
     latitude : float
         Gain of large-area (low-frequency) variation, 0.1 to 1: lower shows thick and thin
-        parts (mediastinum and lung) together; 1 = no compression.
+        parts (mediastinum and lung) together; 1 = no compression (the default: the contrast
+        stage's coarse remapping compresses strong steps without a halo).
     detail_gain : float
         Gain of everything finer than the kernel, 1 to 3.
     kernel_fraction : float
@@ -67,7 +68,7 @@ class DynamicRangeParams:
     """
 
     enabled: bool = field(default=True, metadata={"help": "compress large-area (low-frequency) variation"})
-    latitude: float = field(default=0.8, metadata={
+    latitude: float = field(default=1.0, metadata={
         "help": "gain of large-area variation: lower shows thick and thin parts together; 1 = off",
         "unit": "gain", "min": 0.1, "max": 1.0})
     detail_gain: float = field(default=1.0, metadata={

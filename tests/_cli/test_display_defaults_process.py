@@ -1,0 +1,144 @@
+"""Display defaults without damage, through the ``dslrxr`` process.
+
+* the demo frame: no bright band beside the lung fields (lucent areas with a strong edge) and
+  no dark rim inside them, <= 1 % of the display range; the former defaults' band (10 %) is
+  measured by the same probe, so the probe can see a halo;
+* the real CR chest (a DICOM through ``dslrxr run``): the anatomy's clipped fraction <= 1 %, the
+  GCF rises over the stretched input, and flat-area noise grows less than with CLAHE at the
+  same GCF (the comparison of ``benchmarks/eval_contrast.py``); with the GCF taken over the
+  anatomy alone (no direct exposure) on the chest and the leg; on the whole exposed field the
+  leg does not reach its input's GCF (strict xfail, so the day it does is noticed).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from napari_dslrxr.core.io import read_image, write_tiff
+
+_BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+def _bench_module(name: str):
+    if str(_BENCH) not in sys.path:  # eval_halo imports its siblings
+        sys.path.insert(0, str(_BENCH))
+    spec = importlib.util.spec_from_file_location(name, _BENCH / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+eval_halo = _bench_module("eval_halo")
+eval_contrast = _bench_module("eval_contrast")
+
+
+def _dslrxr(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *args], capture_output=True, text=True,
+                          timeout=600)
+
+
+def _run(source: Path, out: Path, *extra: str) -> tuple[np.ndarray, dict]:
+    done = _dslrxr("run", str(source), *extra, "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    display = read_image(out / f"{source.stem}_dslrxr.tif").data.astype(np.float32) / 65535.0
+    sidecar = json.loads((out / f"{source.stem}_dslrxr.tif.json").read_text())
+    return display, sidecar["results"]
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """The demo frame (600 x 900, seed 0) with its flat and dark as TIFF files, and its probe."""
+    frames, probe = eval_halo.demo_halo_probe()
+    folder = tmp_path_factory.mktemp("demo")
+    paths = {name: write_tiff(folder / f"{name}.tif", arr)
+             for name, arr in (("radiograph", frames.raw_rgb), ("flat", frames.flat), ("dark", frames.dark))}
+    return folder, paths, probe
+
+
+def test_demo_has_no_halo_beside_the_lung_fields(demo):
+    folder, paths, probe = demo
+    inputs = ("--flat", str(paths["flat"]), "--dark", str(paths["dark"]))
+    display, results = _run(paths["radiograph"], folder / "out", *inputs)
+    band, rim, interior_clipped = probe(display)
+    assert band <= 0.01, band  # measured 0.007 (the probe's floor, no enhancement: 0.005)
+    assert rim <= 0.01, rim  # measured -0.002 (none)
+    assert interior_clipped == 0.0
+    assert results["display"]["clipped_fraction"] <= 0.01
+    # the same probe on the former defaults (gains on the linear coarse bands) sees their halo
+    former = folder / "former.toml"
+    former.write_text("[contrast]\ncoarse_halo_step = 0.0\nbone_contrast = 2.0\ndetail_contrast = 0.6\n"
+                      "[dynamic_range]\nlatitude = 0.8\n", encoding="utf-8")
+    display, _ = _run(paths["radiograph"], folder / "out_former", *inputs, "-c", str(former))
+    former_band, former_rim, _ = probe(display)
+    assert former_band > 0.08 and former_rim > 0.08, (former_band, former_rim)  # measured 0.102, 0.14
+
+
+@pytest.fixture(scope="module")
+def cr_scores(shared_data, tmp_path_factory):
+    """``dslrxr run`` on each CR DICOM, scored as ``eval_contrast`` scores it (computed once)."""
+    from napari_dslrxr.core.stages.collimation import detect_collimation
+
+    scores = {}
+    plain = tmp_path_factory.mktemp("plain") / "no_enhancement.toml"
+    plain.write_text("[contrast]\nenabled = false\n[dynamic_range]\nenabled = false\n", encoding="utf-8")
+    for name in ("RG1_UNCR", "RG3_UNCR"):
+        source = shared_data / "cr_dicom" / f"{name}.dcm"
+        if not source.exists():
+            pytest.skip(f"{source} is absent")
+        display, results = _run(source, tmp_path_factory.mktemp(name))
+        windowed, _ = _run(source, tmp_path_factory.mktemp(f"{name}_plain"), "-c", str(plain))
+        image = read_image(source).data.astype(np.float32)
+        field = detect_collimation(image)
+        shown = eval_contrast.stretch(image, field.mask)
+        crop = eval_contrast.inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
+        patch = eval_contrast.find_flat_patch(shown, crop=crop)
+        scores[name], _ = eval_contrast.score_at_equal_gcf(shown, display, patch, crop)
+        anatomy = eval_contrast.anatomy_box(image, field.mask)
+        scores[name]["anatomy"], _ = eval_contrast.score_at_equal_gcf(shown, display, patch, anatomy)
+        # the value-of-interest window and curve alone: what the enhancement adds is measured against it
+        scores[name]["anatomy"]["gcf_no_enhancement"] = eval_contrast.gcf(windowed[anatomy])
+        scores[name]["clipped"] = results["display"]["clipped_fraction"]
+    return scores
+
+
+@pytest.mark.parametrize("name", ["RG1_UNCR", "RG3_UNCR"])  # chest, leg
+def test_cr_anatomy_is_not_clipped(cr_scores, name):
+    assert cr_scores[name]["clipped"] <= 0.01  # measured 0.005 (the fit's bound) on both
+
+
+def test_chest_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):
+    score = cr_scores["RG1_UNCR"]
+    assert score["gcf_ours"] > 1.1 * score["gcf_input"], score  # measured 2.83 -> 3.22
+    assert abs(score["gcf_clahe"] - score["gcf_ours"]) < 0.02 * score["gcf_ours"], score
+    assert score["noise_ratio_ours"] < score["noise_ratio_clahe"], score  # measured 1.19 vs 1.34
+
+
+@pytest.mark.parametrize("name, measured", [("RG1_UNCR", "2.81 -> 3.21 (window alone 2.74), noise 1.19 vs 1.34"),
+                                            ("RG3_UNCR", "3.01 -> 3.56 (window alone 3.37), noise 1.37 vs 1.72")])
+def test_cr_anatomy_gains_contrast_with_less_noise_than_clahe(cr_scores, name, measured):
+    """GCF on the largest box of anatomy only (no direct exposure): it rises, with less noise than CLAHE.
+
+    The leg's value-of-interest window alone already raises it (the window leaves out the direct
+    exposure), so the enhancement must also add to what the window gives.
+    """
+    score = cr_scores[name]["anatomy"]
+    assert score["gcf_ours"] > 1.1 * score["gcf_input"], (measured, score)
+    assert score["gcf_ours"] > 1.03 * score["gcf_no_enhancement"], (measured, score)
+    assert abs(score["gcf_clahe"] - score["gcf_ours"]) < 0.02 * score["gcf_ours"], (measured, score)
+    assert score["noise_ratio_ours"] < score["noise_ratio_clahe"], (measured, score)
+
+
+@pytest.mark.xfail(strict=True, reason="on the whole exposed field the leg's GCF stays below its stretched "
+                                       "input's (2.95 vs 3.11): the input's direct exposure (half the box) "
+                                       "shows its noise texture, ours shows it black; over the anatomy alone "
+                                       "it rises (test above)")
+def test_leg_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):
+    score = cr_scores["RG3_UNCR"]
+    assert score["gcf_ours"] > score["gcf_input"] and score["noise_ratio_ours"] < score["noise_ratio_clahe"], score
