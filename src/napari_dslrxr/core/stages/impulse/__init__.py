@@ -47,6 +47,11 @@ least the spread of its window's background, whose exclusions are made point-sym
 that the median stays unbiased on a ramp. Hue pixels are tested only where the whole
 detection window has a defined hue.
 
+Faint pulses (a few sigmas in each pixel of a blob or track) are seeded by the mean of the
+residual over small footprints (squares and short lines) against its own noise, and the
+first ring around strong seeds is grown at a lower significance (hysteresis); see
+``detection._footprint_seeds`` and ``docs/impulse.md``.
+
 Texture guard (line patterns, meshes, grids are not pulses): around a seed or a grown
 pixel, the annulus 4 to 6 px away must not be busy, busy meaning residuals to the fast
 median of at least 0.4 of the pixel's own (or beyond 3 noise sigmas). A pulse of up to
