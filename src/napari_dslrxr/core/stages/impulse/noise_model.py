@@ -48,12 +48,14 @@ class _NoiseModel:
                 - math.log(2.0 * math.pi))
 
     def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float,
-                 prior: "float | np.ndarray | None" = None, min_variance: np.ndarray | None = None) -> np.ndarray:
+                 prior: "float | np.ndarray | None" = None, min_variance: np.ndarray | None = None,
+                 min_contrast: float | None = None) -> np.ndarray:
         """Posterior pulse probability > threshold, vectorised (float32 inputs allowed).
 
         r > t  <=>  d^2/s^2 > 2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi s^2),
         with ``P`` the fitted pulse rate unless a ``prior`` is given, and ``s^2`` at least
-        ``min_variance`` where that is given.
+        ``min_variance`` where that is given. ``min_contrast``: the Weber contrast rule's
+        fraction instead of the model's (0: none).
         """
         s2 = self.variance(m)
         if min_variance is not None:
@@ -67,8 +69,9 @@ class _NoiseModel:
             pulse &= d < 0
         else:
             pulse &= d != 0
-        if self.min_contrast > 0:
-            pulse &= np.abs(d) > self.min_contrast * np.abs(m)
+        contrast = self.min_contrast if min_contrast is None else min_contrast
+        if contrast > 0:
+            pulse &= np.abs(d) > contrast * np.abs(m)
         return pulse
 
 
