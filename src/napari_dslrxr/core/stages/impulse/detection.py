@@ -254,8 +254,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
             candidates = candidates[valid_flat[candidates]]
         seeds = _exact_test(x, candidates, model, params, circular, residual_weight)
         if footprint_noise is not None and to_check is None:
-            seeds = np.union1d(seeds, _footprint_seeds(x, fast_residual, model, params, footprint_noise,
-                                                       valid_flat))
+            seeds = _sorted_unique(np.concatenate([seeds, _footprint_seeds(x, fast_residual, model, params,
+                                                                           footprint_noise, valid_flat)]), h * w)
         if predictor is not None:
             seeds = seeds[_unpredicted(x, seeds, predictor, model, params, fast_residual, residual_weight,
                                        residual_factor)]
@@ -839,7 +839,8 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
         new = np.zeros(ring.shape, bool)
         ring_prior = prior
         if round_ == 0 and strong_ring is not None:
-            ring_prior = np.where(np.isin(ring[ok], strong_ring), max(prior, _STRONG_RIM_PRIOR), prior)
+            on_strong_ring = _in_sorted(ring, strong_ring)
+            ring_prior = np.where(on_strong_ring[ok], max(prior, _STRONG_RIM_PRIOR), prior)
         new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold, prior=ring_prior,
                                  min_variance=spread[ok] ** 2)
         if round_ == 0 and strong_ring is not None and model.min_contrast > 0:
@@ -849,7 +850,7 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
             # 2.9-3.1 sigma above the repeats' median and are left within about 1 sigma of
             # it. Beyond the first ring, or around weaker seeds, the rule stays (a NIQA
             # frame's PE on spot-free pixels past 0.2 % otherwise).
-            rim = ok & ~new & np.isin(ring, strong_ring)
+            rim = ok & ~new & on_strong_ring
             new[rim] = model.is_pulse(d[rim], med[rim], params.posterior_threshold,
                                       prior=max(prior, _STRONG_RIM_PRIOR), min_variance=spread[rim] ** 2,
                                       min_contrast=0.0)
@@ -869,6 +870,15 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
     for marked in near_marked:
         near_flat[marked] = 0
     return pulses
+
+
+def _in_sorted(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """``np.isin(values, sorted_set)`` for a sorted, duplicate-free ``sorted_set``, by binary
+    search (numpy 2's hash-based ``isin`` took most of a growth round on 24 Mpx frames)."""
+    if sorted_set.size == 0:
+        return np.zeros(values.shape, bool)
+    at = np.minimum(np.searchsorted(sorted_set, values), sorted_set.size - 1)
+    return sorted_set[at] == values
 
 
 def _annulus_sides() -> list[np.ndarray]:
