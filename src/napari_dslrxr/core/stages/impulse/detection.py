@@ -814,32 +814,46 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
     dr5, dc5 = _window_offsets(5)
     near_marked = [_flat_indices(*np.divmod(seeds, w), dr5, dc5, (h, w))]
     near_flat[near_marked[0]] = 1
+    # Each round re-tests the whole ring, but a ring pixel the test rejected keeps its result
+    # while no mark of its window changes: marks change only within 1 px of the pixels grown
+    # last round and the window reaches at most 4 px (9x9), so only rejected pixels within
+    # 5 px of them are tested again (same result; most of a 1 % pulse frame's ring is stale
+    # after the first round). The ring itself is updated from the pixels grown.
+    ring = _sorted_unique(_flat_indices(*np.divmod(pulses, w), dr8, dc8, (h, w)), h * w)
+    stale = None  # ring pixels rejected by the test and not re-testable yet (sorted)
     for round_ in range(params.max_patch_px):
         if check is not None and round_:
             check()
-        rows, cols = np.divmod(pulses, w)
-        ring = _sorted_unique(_flat_indices(rows, cols, dr8, dc8, (h, w)), h * w)
         ring = ring[marks[ring] == 0]
         if valid_flat is not None:
             ring = ring[valid_flat[ring]]
         if ring.size == 0:
             break
         marks[ring] = 2
-        ring_rows, ring_cols = np.divmod(ring, w)
-        med, spread = _masked_median_at(x, scratch, ring_rows, ring_cols, smallest_px=7,
+        rejected = np.zeros(ring.shape, bool)  # rejected by the test (skipped ones included)
+        if stale is None:
+            tested_at = np.arange(ring.size)
+        else:
+            skip = _in_sorted(ring, stale)
+            skip[skip] = ~_in_sorted(ring[skip], _chebyshev_ball(grown, _STALE_REACH_PX, (h, w)))
+            rejected[skip] = True
+            tested_at = np.flatnonzero(~skip)
+        tested = ring[tested_at]
+        med, spread = _masked_median_at(x, scratch, *np.divmod(tested, w), smallest_px=7,
                                         symmetric=True, with_spread=True)
-        d = x.ravel()[ring].astype(np.float64) - med
+        d = x.ravel()[tested].astype(np.float64) - med
         if circular:
             d -= np.rint(d)
         if residual_weight is not None:
-            weight = residual_weight.ravel()[ring]
+            weight = residual_weight.ravel()[tested]
             d *= weight
             spread *= weight
         ok = np.isfinite(d)
-        new = np.zeros(ring.shape, bool)
+        new = np.zeros(tested.shape, bool)
         ring_prior = prior
+        on_strong_ring = None
         if round_ == 0 and strong_ring is not None:
-            on_strong_ring = _in_sorted(ring, strong_ring)
+            on_strong_ring = _in_sorted(tested, strong_ring)
             ring_prior = np.where(on_strong_ring[ok], max(prior, _STRONG_RIM_PRIOR), prior)
         new[ok] = model.is_pulse(d[ok], med[ok], params.posterior_threshold, prior=ring_prior,
                                  min_variance=spread[ok] ** 2)
@@ -854,22 +868,59 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
             new[rim] = model.is_pulse(d[rim], med[rim], params.posterior_threshold,
                                       prior=max(prior, _STRONG_RIM_PRIOR), min_variance=spread[rim] ** 2,
                                       min_contrast=0.0)
+        rejected[tested_at] = ~new
+        if on_strong_ring is not None:
+            rejected[tested_at] &= _stale_after_strong_round(model, params, prior, on_strong_ring)
         marks[ring] = 0
         if new.any():
             # Texture guard as for seeds, relative to the pixel's excess over its background.
-            grown = ring[new]
-            texture = _in_texture(fast_residual, grown, x, model, d[new], near_flat)
+            texture = _in_texture(fast_residual, tested[new], x, model, d[new], near_flat)
             new[np.flatnonzero(new)[texture]] = False
         if not new.any():
             break
-        marks[ring[new]] = 1
-        near_marked.append(_flat_indices(*np.divmod(ring[new], w), dr5, dc5, (h, w)))
+        grown = tested[new]
+        stale = ring[rejected]
+        marks[grown] = 1
+        near_marked.append(_flat_indices(*np.divmod(grown, w), dr5, dc5, (h, w)))
         near_flat[near_marked[-1]] = 1
-        pulses = np.concatenate([pulses, ring[new]])
+        pulses = np.concatenate([pulses, grown])
+        # The next ring: this one without the grown pixels, and the grown pixels' neighbours.
+        ring = _sorted_unique(np.concatenate([ring, _flat_indices(*np.divmod(grown, w), dr8, dc8, (h, w)).ravel()]),
+                              h * w)
     marks[pulses] = 0
     for marked in near_marked:
         near_flat[marked] = 0
     return pulses
+
+
+#: Reach of a grown pixel's change of marks on the growth windows: its own mark and its
+#: neighbours' ring marks (1 px) plus the largest window's half-width (9x9: 4 px).
+_STALE_REACH_PX = 5
+
+
+def _chebyshev_ball(pixels: np.ndarray, radius_px: int, shape) -> np.ndarray:
+    """Sorted flat indices within Chebyshev distance ``radius_px`` of ``pixels`` (borders
+    clipped), a row dilation then a column one (far fewer indices than the square's)."""
+    offsets = np.arange(-radius_px, radius_px + 1)
+    zeros = np.zeros_like(offsets)
+    size = shape[0] * shape[1]
+    band = _sorted_unique(_flat_indices(*np.divmod(pixels, shape[1]), zeros, offsets, shape), size)
+    return _sorted_unique(_flat_indices(*np.divmod(band, shape[1]), offsets, zeros, shape), size)
+
+
+def _stale_after_strong_round(model: _NoiseModel, params: ImpulseParams, prior: float,
+                              on_strong_ring: np.ndarray) -> np.ndarray | bool:
+    """Whether a pixel the first round rejected (with per-pixel priors: ``on_strong_ring``
+    at the strong-rim prior, without the contrast rule) is also rejected by later rounds'
+    test (the plain prior, with it) as long as its window is unchanged. A higher prior only
+    lowers the threshold, so a strong-ring rejection carries over; the per-pixel constant
+    is checked against the scalar one bit for bit (their logarithms may round apart), and
+    a pixel is tested again when the carry-over is not certain."""
+    threshold = params.posterior_threshold
+    plain = model.log_odds_constant(threshold, prior)
+    same_plain = model.log_odds_constant(threshold, np.array([prior]))[0] == plain
+    strong_below = model.log_odds_constant(threshold, np.array([max(prior, _STRONG_RIM_PRIOR)]))[0] <= plain
+    return np.where(on_strong_ring, strong_below, same_plain)
 
 
 def _in_sorted(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
