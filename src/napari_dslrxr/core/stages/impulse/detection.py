@@ -692,17 +692,22 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
         n_counted = np.count_nonzero(counted, axis=1)
         busy_px = (around > level[:, None]) & counted
         busy = np.count_nonzero(busy_px, axis=1) > _TEXTURE_BUSY_FRACTION * n_counted
-        if model.a > 0:  # photon counting: variance at the fast median x - residual
-            noise2 = model.variance(flat_x[idx] - around_signed).astype(_FLOAT)
-        else:
-            noise2 = _FLOAT(max(model.b, model.var_floor))
         around *= around
-        noisy = (around > _FLOAT(_BUSY_SIGMAS ** 2) * noise2) & counted
         # A seed far above the texture around it (a strong pulse on a mesh) is a pulse
         # however noisy that texture is; the noise-relative count is for weak seeds.
         far_above = _FLOAT(_STANDOUT_RELATIVE * _STANDOUT_RELATIVE) * (own * own).astype(_FLOAT)
         standout = (np.count_nonzero((around > far_above[:, None]) & counted, axis=1)
                     <= _TEXTURE_BUSY_FRACTION * n_counted)
+        # The noise-relative count decides only pixels neither busy yet nor standing out
+        # (few on frames dense with strong pulses): computed for those alone.
+        undecided = np.flatnonzero(~busy & ~standout)
+        noisy = np.zeros(idx.shape, bool)
+        if undecided.size:
+            if model.a > 0:  # photon counting: variance at the fast median x - residual
+                noise2 = model.variance(flat_x[idx[undecided]] - around_signed[undecided]).astype(_FLOAT)
+            else:
+                noise2 = _FLOAT(max(model.b, model.var_floor))
+            noisy[undecided] = (around[undecided] > _FLOAT(_BUSY_SIGMAS ** 2) * noise2) & counted[undecided]
         busy |= (np.count_nonzero(noisy, axis=1) > _TEXTURE_NOISY_FRACTION * n_counted) & ~standout
         busy &= n_counted * 3 >= dr.size
         if sides:
