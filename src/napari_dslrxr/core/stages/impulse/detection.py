@@ -15,6 +15,7 @@ from .neighbourhoods import (
     _ring_median_at,
     _component_values_at,
     _FullMap,
+    _REPLACEMENT_WINDOWS_PX,
     _sorted_unique,
     _square_ring_spread,
     _subsample_indices,
@@ -840,7 +841,7 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
             tested_at = np.arange(ring.size)
         else:
             skip = _in_sorted(ring, stale)
-            skip[skip] = ~_in_sorted(ring[skip], _chebyshev_ball(grown, _STALE_REACH_PX, (h, w)))
+            skip[skip] = ~_near(ring[skip], grown, _STALE_REACH_PX, (h, w))
             rejected[skip] = True
             tested_at = np.flatnonzero(~skip)
         tested = ring[tested_at]
@@ -900,17 +901,22 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
 
 #: Reach of a grown pixel's change of marks on the growth windows: its own mark and its
 #: neighbours' ring marks (1 px) plus the largest window's half-width (9x9: 4 px).
-_STALE_REACH_PX = 5
+_STALE_REACH_PX = 1 + _REPLACEMENT_WINDOWS_PX[-1] // 2
 
 
-def _chebyshev_ball(pixels: np.ndarray, radius_px: int, shape) -> np.ndarray:
-    """Sorted flat indices within Chebyshev distance ``radius_px`` of ``pixels`` (borders
-    clipped), a row dilation then a column one (far fewer indices than the square's)."""
+def _near(pixels: np.ndarray, others: np.ndarray, radius_px: int, shape) -> np.ndarray:
+    """True for ``pixels`` (flat indices) within Chebyshev distance ``radius_px`` of one of
+    ``others``: the others' row segments of ``2 radius_px + 1`` px (a sorted set), looked up
+    from each pixel's column in the rows within ``radius_px`` (a row outside the image has a
+    flat index outside it, and no segment)."""
+    height, width = shape
     offsets = np.arange(-radius_px, radius_px + 1)
-    zeros = np.zeros_like(offsets)
-    size = shape[0] * shape[1]
-    band = _sorted_unique(_flat_indices(*np.divmod(pixels, shape[1]), zeros, offsets, shape), size)
-    return _sorted_unique(_flat_indices(*np.divmod(band, shape[1]), offsets, zeros, shape), size)
+    segments = _sorted_unique(_flat_indices(*np.divmod(others, width), np.zeros_like(offsets), offsets, shape),
+                              height * width)
+    out = np.zeros(pixels.shape, bool)
+    for dr in offsets:
+        out |= _in_sorted(pixels + dr * width, segments)
+    return out
 
 
 def _stale_after_strong_round(model: _NoiseModel, params: ImpulseParams, prior: float,
