@@ -47,11 +47,18 @@ least the spread of its window's background, whose exclusions are made point-sym
 that the median stays unbiased on a ramp. Hue pixels are tested only where the whole
 detection window has a defined hue.
 
+Faint pulses (a few sigmas in each pixel of a blob or track) are seeded by the mean of the
+residual over small footprints (squares and short lines) against its own noise, and the
+first ring around strong seeds is grown at a lower significance (hysteresis); see
+``detection._footprint_seeds`` and ``docs/impulse.md``.
+
 Texture guard (line patterns, meshes, grids are not pulses): around a seed or a grown
 pixel, the annulus 4 to 6 px away must not be busy, busy meaning residuals to the fast
 median of at least 0.4 of the pixel's own (or beyond 3 noise sigmas). A pulse of up to
 5x5 px never reaches the annulus and a track crosses it in two places; periodic structure
 fills it. The EM sample avoids busy areas too, since a median flattens fine texture.
+On raw CFA planes one busy side of the annulus is enough (a pattern's border, which a dim
+plane holds aliased at a few noise sigmas); see ``detection._textured_side``.
 
 Polarity (``spots``): bright pulses (direct hits), dark ones (a hit in the open beam turned
 dark by normalisation) or both, on the photon-counting channels.

@@ -41,7 +41,8 @@ def remove_impulses_cfa(planes: np.ndarray, params: ImpulseParams | None = None)
         plane = arr[i]
         cleaned, mask, model = _clean_channel(plane.astype(_FLOAT), passes=params.passes_grey,
                                               params=params, photon_counting=True,
-                                              polarity=_POLARITY_SIGN[params.spots])
+                                              polarity=_POLARITY_SIGN[params.spots],
+                                              faint_pulses=False, texture_sides=True)
         if mask.any():
             out[i][mask] = _to_dtype(cleaned[mask].astype(np.float64), arr.dtype)
         masks[name] = mask

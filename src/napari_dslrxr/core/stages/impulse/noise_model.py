@@ -39,17 +39,23 @@ class _NoiseModel:
 
     def log_odds_constant(self, posterior_threshold: float, rate: float) -> float:
         """2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi): the threshold is s^2 (this - ln s^2)."""
+        if np.ndim(rate):  # one prior per pixel
+            return (2.0 * np.log((1.0 - rate) / (rate * self.pulse_density))
+                    + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
+                    - math.log(2.0 * math.pi))
         return (2.0 * math.log((1.0 - rate) / (rate * self.pulse_density))
                 + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
                 - math.log(2.0 * math.pi))
 
     def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float,
-                 prior: float | None = None, min_variance: np.ndarray | None = None) -> np.ndarray:
+                 prior: "float | np.ndarray | None" = None, min_variance: np.ndarray | None = None,
+                 min_contrast: float | None = None) -> np.ndarray:
         """Posterior pulse probability > threshold, vectorised (float32 inputs allowed).
 
         r > t  <=>  d^2/s^2 > 2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi s^2),
         with ``P`` the fitted pulse rate unless a ``prior`` is given, and ``s^2`` at least
-        ``min_variance`` where that is given.
+        ``min_variance`` where that is given. ``min_contrast``: the Weber contrast rule's
+        fraction instead of the model's (0: none).
         """
         s2 = self.variance(m)
         if min_variance is not None:
@@ -63,8 +69,9 @@ class _NoiseModel:
             pulse &= d < 0
         else:
             pulse &= d != 0
-        if self.min_contrast > 0:
-            pulse &= np.abs(d) > self.min_contrast * np.abs(m)
+        contrast = self.min_contrast if min_contrast is None else min_contrast
+        if contrast > 0:
+            pulse &= np.abs(d) > contrast * np.abs(m)
         return pulse
 
 
