@@ -137,7 +137,8 @@ def _spot_test(z: np.ndarray, mask: np.ndarray, sigmas_px=SPOT_SIGMAS_PX):
     """Small localised spots (dust on the lens or screen, a defect): the prewhitened residual
     correlated with a Gaussian of each width, normalised by its standard deviation under the null
     (``Σk·z / √Σk²`` over unmasked pixels: N(0, 1) per pixel for white unit-variance ``z``). A tile
-    mean dilutes a 3 px spot 30-fold in area; the matched filter does not. The p-value is the
+    mean dilutes a 3 px spot 30-fold in area; the matched filter does not. Pixels within the
+    kernel's reach of the frame border are not tested. The p-value is the
     Bonferroni bound over every pixel and width (conservative: neighbouring values correlate).
     Returns (p, max |statistic|, (row, column), width)."""
     from scipy import ndimage, special
@@ -152,8 +153,11 @@ def _spot_test(z: np.ndarray, mask: np.ndarray, sigmas_px=SPOT_SIGMAS_PX):
         num = ndimage.correlate1d(ndimage.correlate1d(zz, k, axis=0, mode="constant"), k, axis=1, mode="constant")
         k2 = k**2
         den = ndimage.correlate1d(ndimage.correlate1d(m, k2, axis=0, mode="constant"), k2, axis=1, mode="constant")
-        # where at least half the kernel's weight falls on unmasked pixels
+        # where at least half the kernel's weight falls on unmasked pixels, and not within the
+        # kernel's reach of the frame border: there the prewhitening of correlated noise is
+        # inexact (a false spot at column 0 of a correlated-noise null)
         use = mask & (den > 0.5 * k2.sum() ** 2)
+        use[:radius], use[-radius:], use[:, :radius], use[:, -radius:] = False, False, False, False
         count += int(use.sum())
         stat = np.where(use, np.abs(num) / np.sqrt(np.maximum(den, 1e-30)), 0.0)
         i = int(np.argmax(stat))
