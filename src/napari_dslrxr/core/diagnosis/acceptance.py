@@ -5,14 +5,14 @@ parameters at a bound are reported."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..simulation.physics_terms import ChainGrid, PhysicsTerm, get_term
 from .fitting import Layout, Problem, covariance, orthonormal
 from .result import AddedTerm, DiagnosisOptions
-from .terms import GENERIC_SIGNATURE, SMOOTH_ADDITIVE, SMOOTH_WARP, physical_bounds, probe_params
+from .terms import GENERIC_SIGNATURE, SMOOTH_ADDITIVE, SMOOTH_WARP, additive_twin, physical_bounds, probe_params
 
 
 def _candidate_columns(problem: Problem, layout: Layout, x: np.ndarray, term: PhysicsTerm,
@@ -159,6 +159,16 @@ def _delta_bic_beyond(problem: Problem, trial: _Trial, additive: _Trial, opts: D
     return float(additive.chi2 - chi2_both - len(trial.term.params) * log_n)
 
 
+def _additive_twin_trial(problem: Problem, layout: Layout, x: np.ndarray, chi2_now: float, winner: _Trial,
+                         opts: DiagnosisOptions, log_n: float) -> _Trial:
+    """Refit of the winner's field as additive light (:func:`.terms.additive_twin`), from the
+    winner's fitted parameters, with as many evaluations as the winner's final refit."""
+    twin = additive_twin(winner.term)
+    start = {t.name: p for t, p in winner.layout.unpack(winner.x)[1]}[winner.term.name]
+    return _refit_with(problem, layout, x, chi2_now, twin, start,
+                       replace(opts, max_nfev=3 * opts.max_nfev), log_n)
+
+
 def _heldout_gain(problem: Problem, layout: Layout, x: np.ndarray, trial: _Trial,
                   train: np.ndarray, test: np.ndarray) -> float:
     """Fit both models on the training blocks; χ² improvement on the held-out blocks."""
@@ -253,6 +263,15 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
         # at max_nfev; nonlinear shape parameters need more)
         winner.x, winner.chi2, winner.jac = problem.fit(winner.layout, winner.x, max_nfev=3 * opts.max_nfev)
         winner.delta_bic = float(chi2_now - winner.chi2 - len(winner.term.params) * log_n)
+        if like_smooth_light:
+            twin = _additive_twin_trial(problem, layout, x, chi2_now, winner, opts, log_n)
+            comparison.append({**twin.summary(), "generic": True})
+            if twin.chi2 <= winner.chi2:
+                say(f"{winner.term.name}: its field added to the light fits as well as multiplying it "
+                    f"(χ² {twin.chi2:.1f} against {winner.chi2:.1f}) — additive light, not accepted")
+                only_smooth_light += 1
+                rejecting.append(twin)
+                continue
         gain = _heldout_gain(problem, layout, x, winner, train, test)
         if gain <= 0:
             say(f"{winner.term.name}: held-out χ² worse by {-gain:.1f} — not accepted")

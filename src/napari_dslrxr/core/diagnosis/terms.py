@@ -126,6 +126,29 @@ GENERIC_SIGNATURE = {"smooth_gain": "smooth multiplicative field not matching an
                                     "screen) not matching any library term"}
 
 
+#: Suffix of a smooth-field term's additive twin (see :func:`additive_twin`).
+ADDITIVE_TWIN_SUFFIX = "_as_additive_light"
+_TWINS: dict[str, PhysicsTerm] = {}
+
+
+def additive_twin(term: PhysicsTerm) -> PhysicsTerm:
+    """The same smooth field as ``term`` (heel, inverse square, vignetting) with the same
+    parameters, but ADDED to the light (``light + (m - 1)``, open field = 1) instead of
+    multiplying it (``light · m``). A fluence or lens field scales with the object's
+    transmission; stray light or haze does not: where the twin fits as well as the term, the
+    mismatch is additive light, not the library term."""
+    if term.name not in _TWINS:
+        def apply(state: ChainState, p: dict, _term=term) -> None:
+            unit = ChainState(state.grid, fluence=np.ones(state.grid.shape), light=np.ones(state.grid.shape))
+            _term.apply(unit, p)
+            field = unit.fluence if _term.stage == "fluence" else unit.light
+            state.light = state.light + (field - 1.0)
+
+        _TWINS[term.name] = PhysicsTerm(term.name + ADDITIVE_TWIN_SUFFIX, "camera", term.params, term.main, apply,
+                                        physics=f"{term.name}'s field as additive light (not physics: a competitor).")
+    return _TWINS[term.name]
+
+
 def inverse_square_strength(grid: ChainGrid) -> float:
     """``s = (R_diag / SDD)^2`` of :func:`physics_terms._apply_inverse_square` for this field:
     the strength the scene's geometry fixes (``R_diag`` = half diagonal of the field in mm)."""
@@ -145,7 +168,8 @@ def physical_bounds(term: PhysicsTerm, grid: ChainGrid) -> dict[str, tuple[float
       |κ| ≤ 0.1, mirror ghost ε ≤ 0.1 (uncoated glass reflects ≈ 4-7 %), beam hardening
       β ≤ 0.3, lens distortion |k1| ≤ 0.05, focal-spot lobes ≤ 0.8 mm apart.
     """
-    if term.name == "inverse_square":
+    name = term.name.removesuffix(ADDITIVE_TWIN_SUFFIX)
+    if name == "inverse_square":
         s = inverse_square_strength(grid)
         return {"strength": (0.0, 1.5625 * s)}
     table = {
@@ -159,7 +183,7 @@ def physical_bounds(term: PhysicsTerm, grid: ChainGrid) -> dict[str, tuple[float
         "lens_distortion": {"k1": (-0.05, 0.05)},
         "focal_spot_shape": {"half_separation_mm": (0.0, 0.8)},
     }
-    return dict(table.get(term.name, {}))
+    return dict(table.get(name, {}))
 
 
 def probe_params(term: PhysicsTerm, grid: ChainGrid) -> dict[str, float]:
