@@ -114,3 +114,24 @@ def test_local_laplacian_bands_are_the_plain_pyramid_at_unit_gains(rng):
     plain = laplacian_pyramid(img.copy(), 3)
     assert len(bands) == 4
     assert max(float(np.abs(a - b).max()) for a, b in zip(bands, plain)) < 1e-5
+
+
+def test_detail_gain_does_not_swing_with_brightness_when_the_range_is_wide():
+    """A weak 0.01 step gets about the same gain at every brightness, also when a quarter of
+    the frame is far above the display window (8 VOI units): the coarse bands' reference levels
+    had then been spaced 4x their remapping's width, and the gain swung 1.2-3.7 with brightness."""
+    from napari_dslrxr.core.params import PipelineParams
+    from napari_dslrxr.core.stages.contrast import enhance_contrast
+
+    params = PipelineParams().contrast
+    h, w = 512, 512
+    gains = []
+    for base in np.arange(0.30, 0.50, 0.02):
+        image = np.full((h, w), base, np.float32)
+        image[:, w // 2:] += 0.01
+        image[:128] = 0.0
+        image[-128:] = 8.0
+        out = enhance_contrast(image, params)
+        step = out[200:300, w // 2 + 1:w // 2 + 6].mean() - out[200:300, w // 2 - 6:w // 2 - 1].mean()
+        gains.append(step / 0.01)
+    assert min(gains) > 2.0 and max(gains) / min(gains) < 1.2, gains

@@ -220,6 +220,9 @@ def map_coefficients(band: np.ndarray, *, gain: float, power: float, max_coef: f
 #: Most reference levels of the coarse bands' local Laplacian remapping (their spacing widens
 #: beyond ``coarse_halo_step`` when the image's range would need more).
 MAX_REFERENCE_LEVELS = 48
+#: VOI-unit range the coarse bands' reference levels cover at most: the display window (0..1)
+#: and a margin; 47 spacings of the default ``coarse_halo_step`` (0.04) span 1.88.
+COARSE_LEVELS_RANGE = (-0.4, 1.4)
 
 
 def local_laplacian_bands(image: np.ndarray, n_bands: int, *, detail_gain: float, edge_gain: float,
@@ -324,6 +327,11 @@ def enhance_contrast(image: np.ndarray, params: ContrastParams | None = None,
         residual = bands[-1]
         values = _region_sample(residual, mask if use_mask else None, 2 ** (len(bands) - 1))
         lo, hi = (float(v) for v in np.percentile(values, [0.5, 99.5])) if values.size else (0.0, 1.0)
+        # Levels only where the display can show something (VOI units: the window is 0..1): a
+        # wider range would space them beyond the remapping's width, and detail between two
+        # levels would get the edge gain instead of the detail gain.
+        lo, hi = max(lo, COARSE_LEVELS_RANGE[0]), min(hi, COARSE_LEVELS_RANGE[1])
+        lo, hi = (lo, hi) if lo < hi else COARSE_LEVELS_RANGE
         bands[-1] = reconstruct_pyramid(local_laplacian_bands(
             residual, coarse_bands, detail_gain=float(params.bone_contrast),
             edge_gain=float(params.coarse_edge_gain), range_sigma=coarse_step, value_range=(lo, hi)))
