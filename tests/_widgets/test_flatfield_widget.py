@@ -52,7 +52,7 @@ def test_flat_field_removes_vignetting(make_napari_viewer, wait_for_worker, rng)
     clipped = np.minimum(flat, np.percentile(flat, 80))  # the flat's brightest fifth at a white level
     widget._flat.value = viewer.add_image(clipped, name="clipped flat")
     wait_for_worker(widget.run())
-    assert "warning: flat saturated: 2" in widget._readout.value  # 20 % of its pixels at the maximum
+    assert "warning: flat frame saturated: 2" in widget._readout.value  # 20 % of its pixels at the maximum
 
 
 def test_flat_and_dark_from_files_and_live_preview(make_napari_viewer, wait_for_worker, qtbot, tmp_path, rng):

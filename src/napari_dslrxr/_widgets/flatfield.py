@@ -18,7 +18,7 @@ import numpy as np
 from magicgui.widgets import CheckBox, Container, FileEdit, PushButton, create_widget
 
 from ..core.errors import ParameterError
-from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference
+from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference, saturated_flat_message
 from ..core.io import read_image
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, notify_error, readout_label, run_in_worker
@@ -43,11 +43,7 @@ def correct_with_layers(image: np.ndarray, flat: np.ndarray | None, dark: np.nda
     reference = prepare_flat_reference(image.shape, flats=[] if flat is None else [flat],
                                        darks=[] if dark is None else [dark], params=params, progress=progress)
     corrected = apply_flat_field(image, reference)
-    warning = ""
-    if reference.saturated_fraction > 0:
-        warning = (f"flat saturated: {100 * reference.saturated_fraction:.1f} % of its pixels at its maximum "
-                   f"({reference.saturated_level_counts:.0f}); the correction is wrong there")
-    return corrected, reference.cleaned_pulses, robust_limits(corrected), warning
+    return corrected, reference.cleaned_pulses, robust_limits(corrected), saturated_flat_message(reference)
 
 
 class FlatFieldWidget(Container):

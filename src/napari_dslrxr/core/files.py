@@ -16,6 +16,7 @@ files around it.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -213,15 +214,13 @@ def save_flat_reference(reference: FlatReference, folder: str | os.PathLike, key
     partial_folder = folder.with_name(folder.name + ".partial")
     partial_folder.mkdir()
     try:
-        arrays = {"offset": reference.offset, "scale": reference.scale}
-        if reference.denominator is not None:
-            arrays["denominator"] = reference.denominator
-        for name, array in arrays.items():
-            np.save(partial_folder / f"{name}.npy", np.ascontiguousarray(array), allow_pickle=False)
-        counts = {"n_flats": reference.n_flats, "cleaned_pulses": reference.cleaned_pulses, "key": repr(key),
-                  "saturated_fraction": reference.saturated_fraction,
-                  "saturated_level_counts": reference.saturated_level_counts}
-        (partial_folder / "counts.json").write_text(json.dumps(counts), encoding="utf-8")
+        for name in _REFERENCE_ARRAYS:
+            array = getattr(reference, name)
+            if array is not None:
+                np.save(partial_folder / f"{name}.npy", np.ascontiguousarray(array), allow_pickle=False)
+        counts = {field.name: getattr(reference, field.name) for field in dataclasses.fields(reference)
+                  if field.name not in _REFERENCE_ARRAYS}  # every other field: none can be dropped
+        (partial_folder / "counts.json").write_text(json.dumps({**counts, "key": repr(key)}), encoding="utf-8")
         os.replace(partial_folder, folder)
     except BaseException:
         shutil.rmtree(partial_folder, ignore_errors=True)
@@ -243,14 +242,14 @@ def load_flat_reference(folder: str | os.PathLike, key: tuple = ()) -> FlatRefer
     counts = json.loads((folder / "counts.json").read_text(encoding="utf-8"))
     if counts.get("key") != repr(key):
         raise ValueError(f"{folder}: a flat reference prepared for other frames or parameters")
-    denominator = folder / "denominator.npy"
-    return FlatReference(offset=np.load(folder / "offset.npy", mmap_mode="r", allow_pickle=False),
-                         denominator=(np.load(denominator, mmap_mode="r", allow_pickle=False)
-                                      if denominator.exists() else None),
-                         scale=np.load(folder / "scale.npy", allow_pickle=False),
-                         n_flats=int(counts["n_flats"]), cleaned_pulses=int(counts["cleaned_pulses"]),
-                         saturated_fraction=float(counts["saturated_fraction"]),
-                         saturated_level_counts=float(counts["saturated_level_counts"]))
+    del counts["key"]
+    arrays = {name: np.load(folder / f"{name}.npy", mmap_mode="r", allow_pickle=False)
+              if (folder / f"{name}.npy").exists() else None for name in _REFERENCE_ARRAYS}
+    return FlatReference(**arrays, **counts)
+
+
+#: The :class:`FlatReference` fields a shared reference keeps as memory-mapped ``.npy`` files.
+_REFERENCE_ARRAYS = ("offset", "denominator", "scale")
 
 
 def psf_kernel_key(psf_path: str | os.PathLike, source_to_object_mm: float, source_to_detector_mm: float) -> tuple:

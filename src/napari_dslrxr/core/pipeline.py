@@ -26,7 +26,7 @@ from .display import display_steps, scale_display_field, scale_to_voi_window
 from .params import PipelineParams
 from .stages.collimation import detect_collimation
 from .stages.exposure_index import exposure_index_record, not_linear_record
-from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference
+from .stages.flatfield import FlatReference, apply_flat_field, prepare_flat_reference, saturated_flat_message
 from .stages.region import Region, polygon_mask, rectify
 from .stages.screen import detect_screen
 
@@ -317,10 +317,7 @@ def _flatfield_stage(cleaned: np.ndarray, reference: FlatReference, results: dic
             "no flat frame given: flat field not corrected (uneven illumination stays in the image)")
     elif reference.saturated_fraction > 0:
         results["flatfield"]["saturated_fraction"] = reference.saturated_fraction
-        results["warnings"].append(
-            f"flat frame saturated: {100 * reference.saturated_fraction:.1f} % of its pixels sit at its maximum "
-            f"({reference.saturated_level_counts:.0f} counts) in one channel, so the flat field is wrong there "
-            "(give flats exposed below the camera's white level)")
+        results["warnings"].append(saturated_flat_message(reference))
     return corrected
 
 

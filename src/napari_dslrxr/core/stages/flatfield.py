@@ -109,6 +109,16 @@ class FlatReference:
 SATURATED_FLAT_FRACTION = 0.001
 
 
+def saturated_flat_message(reference: FlatReference) -> str:
+    """The warning for a reference whose flat was clipped ("" when it was not); one text for
+    ``dslrxr run`` and the widget."""
+    if not reference.saturated_fraction > 0:
+        return ""
+    return (f"flat frame saturated: {100 * reference.saturated_fraction:.1f} % of its pixels sit at its maximum "
+            f"({reference.saturated_level_counts:.0f} counts) in one channel, so the flat field is wrong there "
+            "(give flats exposed below the camera's white level)")
+
+
 def saturated_plateau(frames: Sequence[np.ndarray]) -> tuple[float, float]:
     """Share of pixels at the maximum of the most clipped channel of ``frames``, and that level.
 
