@@ -118,6 +118,7 @@ def remove_unfinished_outputs(jobs: list[dict]) -> None:
     SIGTERM wait meanwhile (a second one would leave the clean-up half done)."""
     import json
     import signal
+    import threading
 
     from ..core.files import output_paths
     from ..core.io import file_sha256
@@ -125,7 +126,9 @@ def remove_unfinished_outputs(jobs: list[dict]) -> None:
     from ..core.io.writers import remove_partial_writes
     from ..core.params import params_from_dict
 
-    held = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    in_main_thread = threading.current_thread() is threading.main_thread()  # where signals are set
+    held = ({sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+            if in_main_thread else {})
     try:
         for job in jobs:
             for path in output_paths(job["input"], job["out_dir"], params_from_dict(job["params"])).values():
