@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from napari_dslrxr.core.errors import InputError, ParameterError
-from napari_dslrxr.core.metrics import gcf_weights, global_contrast_factor, largest_box, percentage_error
+from napari_dslrxr.core.metrics import (gcf_by_region, gcf_weights, global_contrast_factor, largest_box,
+                                       percentage_error)
 
 
 def w(i: int) -> float:
@@ -92,6 +93,39 @@ def test_gcf_vertical_edge_by_hand():
     assert global_contrast_factor(image.T) == pytest.approx(global_contrast_factor(image))
     assert global_contrast_factor(image / 255.0) == pytest.approx(global_contrast_factor(image))
     assert global_contrast_factor(image.astype(np.uint16) * 257) == pytest.approx(global_contrast_factor(image))
+
+
+def test_gcf_by_region_splits_the_vertical_edge_by_hand():
+    # The 4x4 edge above (C1 from columns 1 and 2, C2 = 50 from the two 2 px columns).
+    image = np.zeros((4, 4), np.uint8)
+    image[:, 2:] = 255
+    c1 = 2 * (25 + 25 + 100 / 3 + 100 / 3) / 16
+    left = np.zeros((4, 4), bool)
+    left[:, :2] = True
+    parts = gcf_by_region(image, left)  # columns: inside, outside, border
+    # column 1 is inside, column 2 outside: half of C1 each; the 2 px superpixels likewise;
+    # the single coarser superpixel is half in the mask: border, with no contrast
+    assert parts[0] == pytest.approx([w(1) * c1 / 2, w(1) * c1 / 2, 0.0], rel=1e-9)
+    assert parts[1] == pytest.approx([w(2) * 25, w(2) * 25, 0.0], rel=1e-6)
+    assert np.all(parts[2:] == 0.0)
+    three = np.zeros((4, 4), bool)
+    three[:, :3] = True
+    parts = gcf_by_region(image, three)
+    # both contrasted columns inside; the right 2 px superpixels straddle the outline
+    assert parts[0] == pytest.approx([w(1) * c1, 0.0, 0.0], rel=1e-9)
+    assert parts[1] == pytest.approx([w(2) * 25, 0.0, w(2) * 25], rel=1e-6)
+    assert parts.sum() == pytest.approx(global_contrast_factor(image), rel=1e-9)
+
+
+def test_gcf_by_region_sums_to_the_gcf_and_swaps_with_the_mask(rng):
+    image = rng.random((230, 310)) ** 2
+    mask = np.zeros(image.shape, bool)
+    mask[40:170, 60:250] = True
+    parts = gcf_by_region(image, mask)
+    assert parts.sum() == pytest.approx(global_contrast_factor(image), rel=1e-9)
+    assert np.allclose(gcf_by_region(image, ~mask), parts[:, [1, 0, 2]], rtol=1e-9, atol=1e-12)
+    with pytest.raises(InputError, match="mask"):
+        gcf_by_region(image, mask[1:])
 
 
 def test_gcf_grey_gamma_by_hand():

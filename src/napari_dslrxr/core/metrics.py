@@ -16,7 +16,8 @@ import numpy as np
 
 from .errors import InputError, ParameterError
 
-__all__ = ["percentage_error", "global_contrast_factor", "GCF_SUPERPIXELS_PX", "gcf_weights"]
+__all__ = ["percentage_error", "global_contrast_factor", "GCF_SUPERPIXELS_PX", "gcf_weights", "gcf_levels",
+           "gcf_by_region", "local_contrast_map"]
 
 #: Superpixel sizes (px) of the nine GCF resolutions (the paper's list for 1024x768 images).
 GCF_SUPERPIXELS_PX = (1, 2, 4, 8, 16, 25, 50, 100, 200)
@@ -121,8 +122,8 @@ def _display_grey(image: np.ndarray) -> np.ndarray:
     return k
 
 
-def _mean_local_contrast(perceptual: np.ndarray) -> float:
-    """Mean over pixels of the mean |L(p) - L(q)| over the existing 4-neighbours q of p."""
+def local_contrast_map(perceptual: np.ndarray) -> np.ndarray:
+    """Per pixel, the mean |L(p) - L(q)| over the existing 4-neighbours q of p (float64)."""
     h, w = perceptual.shape
     total = np.zeros((h, w))
     count = np.zeros((h, w))
@@ -138,8 +139,29 @@ def _mean_local_contrast(perceptual: np.ndarray) -> float:
         total[1:, :] += dv
         count[:-1, :] += 1
         count[1:, :] += 1
-    local = np.divide(total, count, out=np.zeros_like(total), where=count > 0)
-    return float(local.mean())
+    return np.divide(total, count, out=np.zeros_like(total), where=count > 0)
+
+
+def gcf_levels(image: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """The GCF's nine resolutions: ``(superpixel size, perceptual luminance L)`` each.
+
+    ``L = 100 sqrt(l)`` of the linear image ``l = (k/255)^2.2`` averaged (area interpolation)
+    to ``round(W/s) x round(H/s)``, at least 1 x 1; ``image`` as :func:`global_contrast_factor`
+    takes it.
+    """
+    import cv2
+
+    linear = (_display_grey(image) / 255.0) ** GCF_GAMMA
+    h, w = linear.shape
+    levels = []
+    for size in GCF_SUPERPIXELS_PX:
+        if size == 1:
+            level = linear
+        else:
+            new_w, new_h = max(1, round(w / size)), max(1, round(h / size))
+            level = cv2.resize(linear, (new_w, new_h), interpolation=cv2.INTER_AREA)
+        levels.append((size, 100.0 * np.sqrt(np.maximum(level, 0.0))))
+    return levels
 
 
 def global_contrast_factor(image: np.ndarray) -> float:
@@ -165,20 +187,43 @@ def global_contrast_factor(image: np.ndarray) -> float:
     float
         GCF (dimensionless; about 1-10 for natural images, 0 for a constant image).
     """
+    contrasts = [local_contrast_map(level).mean() for _, level in gcf_levels(image)]
+    return float(np.dot(gcf_weights(), contrasts))
+
+
+def gcf_by_region(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Where an image's GCF comes from: its terms ``w_i C_i`` split between two regions.
+
+    At each of the nine resolutions the local contrast of every superpixel goes to ``inside``
+    (its pixels all in ``mask``: at least 99 % of its area), ``outside`` (at most 1 %) or
+    ``border`` (the rest: superpixels straddling the mask's outline, such as a skin line
+    against direct exposure). Each share is the superpixels' summed local contrast over the
+    level's pixel count, weighted, so the array sums to :func:`global_contrast_factor`.
+
+    Parameters
+    ----------
+    image : ndarray
+        Display image, as :func:`global_contrast_factor` takes it.
+    mask : ndarray of bool, (H, W)
+
+    Returns
+    -------
+    ndarray, (9, 3)
+        Rows: the resolutions of :data:`GCF_SUPERPIXELS_PX`; columns: inside, outside, border.
+    """
     import cv2
 
-    k = _display_grey(image)
-    linear = (k / 255.0) ** GCF_GAMMA
-    h, w = linear.shape
-    contrasts = []
-    for size in GCF_SUPERPIXELS_PX:
-        if size == 1:
-            level = linear
-        else:
-            new_w, new_h = max(1, round(w / size)), max(1, round(h / size))
-            level = cv2.resize(linear, (new_w, new_h), interpolation=cv2.INTER_AREA)
-        contrasts.append(_mean_local_contrast(100.0 * np.sqrt(np.maximum(level, 0.0))))
-    return float(np.dot(gcf_weights(), contrasts))
+    inside = np.asarray(mask, np.float32)
+    if inside.shape != np.asarray(image).shape[:2]:
+        raise InputError("mask", f"shape {inside.shape} differs from the image's {np.asarray(image).shape[:2]}")
+    parts = np.zeros((len(GCF_SUPERPIXELS_PX), 3))
+    for row, ((_, level), weight) in enumerate(zip(gcf_levels(image), gcf_weights())):
+        share = inside if level.shape == inside.shape else cv2.resize(
+            inside, (level.shape[1], level.shape[0]), interpolation=cv2.INTER_AREA)
+        local = local_contrast_map(level)
+        for col, select in enumerate((share >= 0.99, share <= 0.01, (share > 0.01) & (share < 0.99))):
+            parts[row, col] = weight * local[select].sum() / local.size
+    return parts
 
 
 def largest_box(mask: np.ndarray, *, step: int = 1, margin_px: int = 0) -> tuple[slice, slice]:
