@@ -3,8 +3,8 @@
 ``eval_contrast`` scores the GCF on the largest box inside the exposed field. On the real leg
 that box is 41 % direct exposure (the beam beside the leg), and our display's GCF there stays
 below the stretched input's while it rises over the anatomy alone. This script says why. For
-the real CR chest and leg (``$DSLRXR_DATA/cr_dicom``), the demo frame and a few corpus-like
-frames of the phantom:
+the real CR chest and leg (``$DSLRXR_DATA/cr_dicom``) and three phantom frames (seed 0: the
+demo frame ``eval_halo`` probes, at 600 x 900):
 
 * renders: the input (0.5-99.5 % stretch within the exposed field, as ``eval_contrast``), the
   value-of-interest window and display curve alone (no dynamic range, no contrast), the
