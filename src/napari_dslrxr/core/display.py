@@ -15,12 +15,14 @@ from __future__ import annotations
 
 from collections.abc import Generator
 
+import cv2
 import numpy as np
 
 from .params import PipelineParams
 from .stages.collimation import detect_collimation
 from .stages.contrast import enhance_contrast
-from .stages.dynamic_range import CLIPPED_HIGH, CLIPPED_LOW, fit_to_display, reduce_dynamic_range, sigmoid_lut
+from .stages.dynamic_range import (CLIPPED_HIGH, CLIPPED_LOW, fit_to_display, lift_anatomy_foot, reduce_dynamic_range,
+                                   sigmoid_lut)
 from .stages.region import direct_exposure_mask, voi_window
 
 
@@ -59,6 +61,52 @@ def anatomy_grid(image: np.ndarray, mask: np.ndarray | None, params: PipelinePar
         if direct is not None and (anatomy & ~direct).any():
             anatomy &= ~direct
     return step, anatomy
+
+
+def anatomy_foot_weight(image: np.ndarray, mask: np.ndarray | None,
+                        params: PipelineParams) -> tuple[int, np.ndarray] | None:
+    """Where the display lifts the anatomy's foot: the body as opposed to direct exposure, on a grid.
+
+    Returns the regular subsample step and a float32 weight on that grid (1 = anatomy, 0 =
+    direct exposure, feathered by a Gaussian of 1 grid pixel), or None when the frame has no
+    direct exposure, ``params.dynamic_range.anatomy_floor`` is 0 or direct exposure is not
+    excluded. Direct exposure is taken at the value-of-interest window's level
+    (:func:`direct_exposure_mask` without ``at_foot``): the beam's glow near the field's edge
+    then stays black, and the body's outline lies on the skin's steep rise. An opening by a
+    disc of 1 % of the short side drops strips narrower than that (the penumbra along a
+    collimator blade), which are not anatomy.
+    """
+    if params.dynamic_range.anatomy_floor <= 0 or not params.region.exclude_direct_exposure:
+        return None
+    step = max(1, int(np.sqrt(image.size / 1_000_000)))
+    sub = image[::step, ::step]
+    inside = np.ones(sub.shape, bool) if mask is None else mask[::step, ::step]
+    direct = direct_exposure_mask(sub, inside)
+    if direct is None or not direct.any():
+        return None
+    size = max(5, (min(sub.shape) // 100) | 1)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    body = cv2.morphologyEx((inside & ~direct).astype(np.uint8), cv2.MORPH_OPEN, disc)
+    if not body.any():
+        return None
+    return step, cv2.GaussianBlur(body.astype(np.float32), (0, 0), 1.0)
+
+
+def apply_anatomy_foot(display: np.ndarray, foot: tuple[int, np.ndarray], floor: float, rows: int = 512) -> None:
+    """:func:`lift_anatomy_foot` in place with the grid weight of :func:`anatomy_foot_weight`.
+
+    The weight is brought to full size in blocks of ``rows`` (pixel ``(r, c)`` reads the grid
+    at ``(r / step, c / step)``, bilinear), so no full-size weight is held.
+    """
+    step, grid = foot
+    h, w = display.shape
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        to_grid = np.float32([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, r0 / step]])
+        weight = grid[r0:r1] if step == 1 else cv2.warpAffine(
+            grid, to_grid, (w, r1 - r0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_REPLICATE)
+        lift_anatomy_foot(display[r0:r1], weight, floor)
 
 
 #: Self-check bounds of a display image: the anatomy's share at pure black or white, and the
@@ -103,12 +151,15 @@ def display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelinePa
     :func:`~.pipeline.run_pipeline` can report progress and time each stage. The generator releases
     ``image`` once the first stage is done and each stage's result once the next is done.
     Before the display curve the anatomy is kept off the display's ends
-    (:func:`~napari_dslrxr.core.dynamic_range.fit_to_display`); ``report`` (when given) gets
+    (:func:`~napari_dslrxr.core.dynamic_range.fit_to_display`); after it, beside direct exposure,
+    the anatomy's darkest values are lifted off black (:func:`anatomy_foot_weight`,
+    ``dynamic_range.anatomy_floor``). ``report`` (when given) gets
     the adjustment (``display_fit``) and the share of the anatomy still clipped
     (``clipped_fraction``).
     """
     step, anatomy = anatomy_grid(image, mask, params)
     scaled_anatomy = image[::step, ::step][anatomy].copy() if report is not None else None
+    foot = anatomy_foot_weight(image, mask, params)
     x = reduce_dynamic_range(image, mask, params.dynamic_range)
     del image
     yield x
@@ -116,6 +167,8 @@ def display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelinePa
     yield x
     fit = fit_to_display(x, x[::step, ::step][anatomy], params.dynamic_range)
     x = sigmoid_lut(x, params.dynamic_range)
+    if foot is not None:
+        apply_anatomy_foot(x, foot, params.dynamic_range.anatomy_floor)
     if report is not None:
         shown = x[::step, ::step][anatomy]
         report["display_fit"] = fit

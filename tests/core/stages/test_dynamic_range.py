@@ -1,6 +1,7 @@
 """Dynamic-range reduction: large-area range shrinks, detail kept; no leakage from outside."""
 
 import numpy as np
+import pytest
 
 from napari_dslrxr.core.stages.dynamic_range import (DynamicRangeParams, edge_aware_lowpass, masked_lowpass, reduce_dynamic_range,
                                               sigmoid_lut)
@@ -62,3 +63,22 @@ def test_sigmoid_maps_voi_ends_and_is_monotone():
     assert np.all(np.diff(y) >= 0) and y.min() >= 0 and y.max() <= 1
     ends = sigmoid_lut(np.array([0.0, 1.0], np.float32))
     assert np.allclose(ends, [0.02, 0.98], atol=1e-5)
+
+
+def test_foot_lift_is_a_toe_that_keeps_the_order():
+    """Display 0 goes to the floor, the curve is untouched from 4 x floor up, and stays increasing."""
+    from napari_dslrxr.core.stages.dynamic_range import FOOT_TOE_SPAN, lift_anatomy_foot
+
+    y = np.linspace(0.0, 1.0, 1001, dtype=np.float32)
+    lifted = y.copy()
+    lift_anatomy_foot(lifted, np.ones_like(y), 0.12)
+    assert lifted[0] == pytest.approx(0.12, abs=1e-6)
+    above = y >= FOOT_TOE_SPAN * 0.12
+    assert np.array_equal(lifted[above], y[above])
+    slope = np.diff(lifted) / np.diff(y)
+    assert slope.min() >= 1 - 2 / FOOT_TOE_SPAN - 1e-3  # at least half the curve's: nothing flattened
+    # where the weight is 0 (direct exposure) or the floor is 0, nothing changes
+    kept = y.copy()
+    lift_anatomy_foot(kept, np.zeros_like(y), 0.12)
+    lift_anatomy_foot(kept, np.ones_like(y), 0.0)
+    assert np.array_equal(kept, y)

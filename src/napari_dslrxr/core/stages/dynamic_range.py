@@ -65,6 +65,12 @@ class DynamicRangeParams:
         may land on the display's black or white end: when the processed values spread beyond
         the curve's range they are compressed (never expanded) onto it, see
         :func:`fit_to_display` (0 to 100; 100 = never adjust).
+    anatomy_floor : float
+        Display grey of the thinnest tissue beside direct exposure (0 to 0.3; 0 = off): where
+        the frame has direct exposure (the beam beside the body, kept black), the anatomy's
+        darkest values are lifted to about this grey so the skin line and thin soft tissue
+        stand out from the black background (:func:`lift_anatomy_foot`). Frames without
+        direct exposure are unchanged.
     """
 
     enabled: bool = field(default=True, metadata={"help": "compress large-area (low-frequency) variation"})
@@ -87,6 +93,10 @@ class DynamicRangeParams:
         "help": "largest share of the anatomy shown as pure black or white; the processed values are "
                 "compressed onto the display curve when more would clip (100 = never adjust)",
         "unit": "%", "min": 0.0, "max": 100.0})
+    anatomy_floor: float = field(default=0.12, metadata={
+        "help": "display grey of the thinnest tissue beside direct exposure (the beam beside the body stays "
+                "black), so the skin line shows; 0 = off",
+        "unit": "display fraction", "min": 0.0, "max": 0.3})
 
     def __post_init__(self) -> None:
         validate_fields(self, "dynamic_range")
@@ -309,3 +319,40 @@ def fit_to_display(image: np.ndarray, sample: np.ndarray, params: DynamicRangePa
     if offset != 0.0:
         image += np.float32(offset)
     return {"gain": round(gain, 4), "offset": round(offset, 4)}
+
+
+#: The foot lift fades out at this multiple of ``anatomy_floor``: the display's slope at the
+#: anatomy's darkest values is at least half the curve's (``1 - 2 / FOOT_TOE_SPAN``).
+FOOT_TOE_SPAN = 4.0
+
+
+def lift_anatomy_foot(display: np.ndarray, weight: np.ndarray, floor: float) -> None:
+    """Lift the darkest anatomy off black, in place: ``y + floor * weight * (1 - y / t)^2`` below ``t``.
+
+    ``t = FOOT_TOE_SPAN * floor``: a toe that lifts display value 0 to ``floor`` and joins the
+    curve smoothly (same value and slope) at ``t``; above ``t`` nothing changes, and the
+    result stays increasing in ``y`` (its slope is at least ``1 - 2 / FOOT_TOE_SPAN``).
+    ``weight`` (0..1, same shape) is the anatomy as opposed to direct exposure, feathered over
+    a pixel or two at the skin (:func:`napari_dslrxr.core.display.anatomy_foot_weight`), so the
+    beam stays black and the step to grey lies on the skin line, where the attenuation rises
+    steeply, not on an iso-value line through the beam's glow.
+
+    Parameters
+    ----------
+    display : ndarray, float32
+        Display values in [0, 1] (after :func:`sigmoid_lut`); modified in place.
+    weight : ndarray, float32
+        Where to lift (1 = anatomy, 0 = direct exposure).
+    floor : float
+        Display value given to the anatomy's black (0 = no change).
+    """
+    if floor <= 0:
+        return
+    top = FOOT_TOE_SPAN * float(floor)
+    toe = np.subtract(np.float32(1.0), display * np.float32(1.0 / top))
+    np.clip(toe, 0.0, 1.0, out=toe)
+    np.square(toe, out=toe)
+    toe *= weight
+    toe *= np.float32(floor)
+    display += toe
+    np.clip(display, 0.0, 1.0, out=display)
