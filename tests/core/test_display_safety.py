@@ -181,3 +181,15 @@ def test_a_frame_without_direct_exposure_is_unchanged_by_the_foot_lift(rng):
     out = enhance_radiograph(image, PipelineParams())
     off = enhance_radiograph(image, params_from_dict({"dynamic_range": {"anatomy_floor": 0.0}}))
     assert np.array_equal(out, off)
+
+
+def test_foot_weight_on_a_coarse_grid_lands_on_its_pixels():
+    """The grid weight (statistics grid of step 3) is read at (r / 3, c / 3): in blocks, only where it is."""
+    from napari_dslrxr.core.display import apply_anatomy_foot
+
+    grid = np.zeros((40, 50), np.float32)
+    grid[10:30, 5:20] = np.linspace(0.2, 1.0, 15, dtype=np.float32)[None, :]  # a body with a ramp across it
+    display = np.zeros((120, 150), np.float32)
+    apply_anatomy_foot(display, 3, grid, 0.1, rows=7)
+    assert np.allclose(display[::3, ::3], 0.1 * grid, atol=1e-6)
+    assert display[:, 70:].max() == 0.0 and display[100:].max() == 0.0  # far from the body: untouched

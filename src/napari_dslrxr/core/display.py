@@ -21,9 +21,9 @@ import numpy as np
 from .params import PipelineParams
 from .stages.collimation import detect_collimation
 from .stages.contrast import enhance_contrast
-from .stages.dynamic_range import (CLIPPED_HIGH, CLIPPED_LOW, fit_to_display, lift_anatomy_foot, reduce_dynamic_range,
-                                   sigmoid_lut)
-from .stages.region import direct_exposure_mask, voi_window
+from .stages.dynamic_range import (CLIPPED_HIGH, CLIPPED_LOW, FOOT_TOE_SPAN, add_toe, fit_to_display,
+                                   reduce_dynamic_range, sigmoid_lut)
+from .stages.region import direct_exposure_masks, voi_window
 
 
 def scale_to_voi_window(x: np.ndarray, mask: np.ndarray | None, params: PipelineParams) -> tuple[float, float]:
@@ -45,68 +45,83 @@ def anatomy_grid(image: np.ndarray, mask: np.ndarray | None, params: PipelinePar
     """Regular subsample step and its anatomy mask: inside ``mask``, outside direct exposure.
 
     ``image`` is attenuation-like (high = more attenuation). Direct exposure is the beam that
-    reached the detector without passing the patient (:func:`direct_exposure_mask`: a narrow
+    reached the detector without passing the patient (:func:`~.stages.region.direct_exposure_mask`: a narrow
     low-attenuation mode outside the body's outline); lungs and other lucent parts enclosed by
     the body are anatomy. ``at_foot`` (the display's check) takes the conservative level, so
     thin tissue beside the direct exposure counts as anatomy and must not burn out; the
     value-of-interest window takes the valley above the mode.
     """
-    step = max(1, int(np.sqrt(image.size / 1_000_000)))
-    sub = image[::step, ::step]
-    anatomy = np.ones(sub.shape, bool) if mask is None else mask[::step, ::step].copy()
-    if not anatomy.any():
-        anatomy[...] = True
-    if params.region.exclude_direct_exposure:
-        direct = direct_exposure_mask(sub, anatomy, at_foot=at_foot)
-        if direct is not None and (anatomy & ~direct).any():
-            anatomy &= ~direct
-    return step, anatomy
+    step, region, direct = direct_exposure_grid(image, mask, params, (at_foot,))
+    return step, without_direct_exposure(region, None if direct is None else direct[0])
 
 
-def anatomy_foot_weight(image: np.ndarray, mask: np.ndarray | None,
-                        params: PipelineParams) -> tuple[int, np.ndarray] | None:
-    """Where the display lifts the anatomy's foot: the body as opposed to direct exposure, on a grid.
+def direct_exposure_grid(image: np.ndarray, mask: np.ndarray | None, params: PipelineParams,
+                         at_foot: tuple[bool, ...]) -> tuple[int, np.ndarray, tuple[np.ndarray, ...] | None]:
+    """Regular subsample step, the region on it, and its direct exposure at each level of ``at_foot``.
 
-    Returns the regular subsample step and a float32 weight on that grid (1 = anatomy, 0 =
-    direct exposure, feathered by a Gaussian of 1 grid pixel), or None when the frame has no
-    direct exposure, ``params.dynamic_range.anatomy_floor`` is 0 or direct exposure is not
-    excluded. Direct exposure is taken at the value-of-interest window's level
-    (:func:`direct_exposure_mask` without ``at_foot``): the beam's glow near the field's edge
-    then stays black, and the body's outline lies on the skin's steep rise. An opening by a
-    disc of 1 % of the short side drops strips narrower than that (the penumbra along a
-    collimator blade), which are not anatomy.
+    The direct exposure is None when there is none or ``params.region.exclude_direct_exposure``
+    is off (:func:`~.stages.region.direct_exposure_masks`: one smoothing and one histogram for
+    all levels).
     """
-    if params.dynamic_range.anatomy_floor <= 0 or not params.region.exclude_direct_exposure:
-        return None
     step = max(1, int(np.sqrt(image.size / 1_000_000)))
-    sub = image[::step, ::step]
-    inside = np.ones(sub.shape, bool) if mask is None else mask[::step, ::step]
-    direct = direct_exposure_mask(sub, inside)
+    region = np.ones(image[::step, ::step].shape, bool) if mask is None else mask[::step, ::step].copy()
+    if not region.any():
+        region[...] = True
+    direct = None
+    if params.region.exclude_direct_exposure:
+        direct = direct_exposure_masks(image[::step, ::step], region, at_foot=at_foot)
+    return step, region, direct
+
+
+def without_direct_exposure(region: np.ndarray, direct: np.ndarray | None) -> np.ndarray:
+    """The anatomy: ``region`` less ``direct`` (the whole region when that would leave nothing)."""
+    if direct is not None and (region & ~direct).any():
+        return region & ~direct
+    return region
+
+
+def anatomy_foot_weight(region: np.ndarray, direct: np.ndarray | None) -> np.ndarray | None:
+    """Where the display lifts the anatomy's foot: the body as opposed to direct exposure.
+
+    ``region`` and ``direct`` are on the statistics grid (:func:`direct_exposure_grid`), the
+    direct exposure taken at the value-of-interest window's level (not at the mode's foot): the
+    beam's glow near the field's edge then stays black, and the body's outline lies on the
+    skin's steep rise. Returns a float32 weight on that grid (1 = anatomy, 0 = direct exposure,
+    feathered by a Gaussian of 1 grid pixel), or None when there is no direct exposure. An
+    opening by a disc of 1 % of the short side drops strips narrower than that (the penumbra
+    along a collimator blade), which are not anatomy.
+    """
     if direct is None or not direct.any():
         return None
-    size = max(5, (min(sub.shape) // 100) | 1)
+    size = max(5, (min(region.shape) // 100) | 1)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-    body = cv2.morphologyEx((inside & ~direct).astype(np.uint8), cv2.MORPH_OPEN, disc)
+    body = cv2.morphologyEx((region & ~direct).astype(np.uint8), cv2.MORPH_OPEN, disc)
     if not body.any():
         return None
-    return step, cv2.GaussianBlur(body.astype(np.float32), (0, 0), 1.0)
+    return cv2.GaussianBlur(body.astype(np.float32), (0, 0), 1.0)
 
 
-def apply_anatomy_foot(display: np.ndarray, foot: tuple[int, np.ndarray], floor: float, rows: int = 512) -> None:
-    """:func:`lift_anatomy_foot` in place with the grid weight of :func:`anatomy_foot_weight`.
+def apply_anatomy_foot(display: np.ndarray, step: int, weight: np.ndarray, floor: float, rows: int = 512) -> None:
+    """:func:`~.stages.dynamic_range.lift_anatomy_foot` in place, ``weight`` on the grid of ``step``.
 
     The weight is brought to full size in blocks of ``rows`` (pixel ``(r, c)`` reads the grid
-    at ``(r / step, c / step)``, bilinear), so no full-size weight is held.
+    at ``(r / step, c / step)``, bilinear), so no full-size weight is held; only the columns
+    with anatomy are touched.
     """
-    step, grid = foot
+    top = FOOT_TOE_SPAN * float(floor)
+    scaled = weight * np.float32(floor / top ** 2)
     h, w = display.shape
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
-        to_grid = np.float32([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, r0 / step]])
-        weight = grid[r0:r1] if step == 1 else cv2.warpAffine(
-            grid, to_grid, (w, r1 - r0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        cols = np.flatnonzero(scaled[r0 // step: (r1 - 1) // step + 2].any(axis=0))
+        if cols.size == 0:
+            continue
+        c0, c1 = max(0, (cols[0] - 1) * step), min(w, (cols[-1] + 2) * step)  # the columns with anatomy
+        to_grid = np.float32([[1.0 / step, 0.0, c0 / step], [0.0, 1.0 / step, r0 / step]])
+        block = scaled[r0:r1, c0:c1] if step == 1 else cv2.warpAffine(
+            scaled, to_grid, (c1 - c0, r1 - r0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_REPLICATE)
-        lift_anatomy_foot(display[r0:r1], weight, floor)
+        add_toe(display[r0:r1, c0:c1], block, top)
 
 
 #: Self-check bounds of a display image: the anatomy's share at pure black or white, and the
@@ -157,9 +172,11 @@ def display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelinePa
     the adjustment (``display_fit``) and the share of the anatomy still clipped
     (``clipped_fraction``).
     """
-    step, anatomy = anatomy_grid(image, mask, params)
+    step, region, direct = direct_exposure_grid(image, mask, params, (True, False))
+    anatomy = without_direct_exposure(region, None if direct is None else direct[0])
     scaled_anatomy = image[::step, ::step][anatomy].copy() if report is not None else None
-    foot = anatomy_foot_weight(image, mask, params)
+    floor = params.dynamic_range.anatomy_floor
+    foot = anatomy_foot_weight(region, direct[1]) if direct is not None and floor > 0 else None
     x = reduce_dynamic_range(image, mask, params.dynamic_range)
     del image
     yield x
@@ -168,7 +185,7 @@ def display_steps(image: np.ndarray, mask: np.ndarray | None, params: PipelinePa
     fit = fit_to_display(x, x[::step, ::step][anatomy], params.dynamic_range)
     x = sigmoid_lut(x, params.dynamic_range)
     if foot is not None:
-        apply_anatomy_foot(x, foot, params.dynamic_range.anatomy_floor)
+        apply_anatomy_foot(x, step, foot, floor)
     if report is not None:
         shown = x[::step, ::step][anatomy]
         report["display_fit"] = fit

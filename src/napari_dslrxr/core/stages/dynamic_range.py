@@ -349,10 +349,13 @@ def lift_anatomy_foot(display: np.ndarray, weight: np.ndarray, floor: float) -> 
     if floor <= 0:
         return
     top = FOOT_TOE_SPAN * float(floor)
-    toe = np.subtract(np.float32(1.0), display * np.float32(1.0 / top))
-    np.clip(toe, 0.0, 1.0, out=toe)
+    add_toe(display, np.asarray(weight, np.float32) * np.float32(floor / top ** 2), top)
+
+
+def add_toe(display: np.ndarray, scaled_weight: np.ndarray, top: float) -> None:
+    """``display += scaled_weight * (top - min(display, top))^2`` in place (:func:`lift_anatomy_foot`'s body)."""
+    toe = np.minimum(display, np.float32(top))
+    np.subtract(np.float32(top), toe, out=toe)
     np.square(toe, out=toe)
-    toe *= weight
-    toe *= np.float32(floor)
+    toe *= scaled_weight
     display += toe
-    np.clip(display, 0.0, 1.0, out=display)

@@ -199,6 +199,12 @@ def direct_exposure_level(values: np.ndarray, *, at_foot: bool = False) -> float
     values : ndarray, float
         Finite attenuation-domain values (high = more attenuation), any shape.
     """
+    levels = direct_exposure_levels(values)
+    return None if levels is None else levels[1 if at_foot else 0]
+
+
+def direct_exposure_levels(values: np.ndarray) -> tuple[float, float] | None:
+    """Both levels of :func:`direct_exposure_level` from one histogram: ``(valley, foot)``, or None."""
     v = np.asarray(values, np.float32).ravel()
     if v.size < 16:
         return None
@@ -217,13 +223,11 @@ def direct_exposure_level(values: np.ndarray, *, at_foot: bool = False) -> float
         if (smooth[valley] < 0.5 * peak_height and smooth[valley:].max() > 2 * smooth[valley] + 1
                 and np.count_nonzero(v >= edges[valley]) > 0.2 * v.size
                 and _narrow_mode(v, float(edges[valley]))):
-            if not at_foot:
-                return float(edges[valley])
             # Thin soft tissue (the skin line of a limb) spreads as a low plateau from the
             # peak's foot to the object, and the plateau's deepest bin may lie far into it
             floor = smooth[valley] + 0.03 * (peak_height - smooth[valley])
             foot = peak + int(np.argmax(smooth[peak:valley + 1] <= floor))
-            return float(edges[foot])
+            return float(edges[valley]), float(edges[foot])
     return None
 
 
@@ -274,14 +278,29 @@ def direct_exposure_mask(image: np.ndarray, mask: np.ndarray | None = None, *,
     ndarray, bool, (H, W) or None
         None when there is no direct-exposure mode.
     """
+    masks = direct_exposure_masks(image, mask, at_foot=(at_foot,))
+    return None if masks is None else masks[0]
+
+
+def direct_exposure_masks(image: np.ndarray, mask: np.ndarray | None = None, *,
+                          at_foot: tuple[bool, ...] = (True, False)) -> tuple[np.ndarray, ...] | None:
+    """:func:`direct_exposure_mask` at several levels from one smoothing and one histogram.
+
+    One mask per entry of ``at_foot`` (in that order), or None when there is no direct-exposure
+    mode.
+    """
     inside = np.ones(image.shape, bool) if mask is None else mask
     # decided on a 5 x 5 median: the photon noise of a dense, starved area (shielding, blades)
     # would otherwise widen its mode until the whole anatomy looks narrow beside it
     smooth = cv2.medianBlur(np.nan_to_num(np.ascontiguousarray(image, np.float32)), 5)
-    values = smooth[inside]
-    level = direct_exposure_level(values, at_foot=at_foot)
-    if level is None:
+    levels = direct_exposure_levels(smooth[inside])
+    if levels is None:
         return None
+    return tuple(_outside_the_body(smooth, inside, levels[1 if foot else 0]) for foot in at_foot)
+
+
+def _outside_the_body(smooth: np.ndarray, inside: np.ndarray, level: float) -> np.ndarray:
+    """Pixels of ``inside`` below ``level`` connected through such pixels to the exterior."""
     low = inside & (smooth < level)
     # the outside of the region and the frame's border seed the exterior; a low pixel is direct
     # exposure when it reaches them through low pixels (8-connected)
