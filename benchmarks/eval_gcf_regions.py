@@ -42,9 +42,11 @@ from napari_dslrxr.core.metrics import GCF_SUPERPIXELS_PX, gcf_by_region  # noqa
 RENDERS = {
     "window and curve alone": {"contrast.enabled": False, "dynamic_range.enabled": False},
     "default": {},
+    "default without the skin line (anatomy_floor 0)": {"dynamic_range.anatomy_floor": 0.0},
     "coarse_edge_gain 1": {"contrast.coarse_edge_gain": 1.0},
 }
-#: Display values given to the anatomy's foot in the leg's trade-off (the defaults: 0.02).
+#: Display values given to the anatomy's foot in the leg's trade-off by value alone (the curve's
+#: foot: 0.02; the defaults' lift beside direct exposure, ``anatomy_floor``, is by the body's outline).
 FOOT_FLOORS = (0.05, 0.1, 0.15, 0.2)
 
 

@@ -18,6 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -111,6 +112,13 @@ def cr_scores(shared_data, tmp_path_factory):
         inside = eval_gcf_regions.anatomy_mask(image, field.mask)[crop]
         scores[name]["gcf_parts"] = {"input": gcf_by_region(shown[crop], inside).sum(axis=0),
                                      "ours": gcf_by_region(display[crop], inside).sum(axis=0)}
+        if not inside.all():  # the skin line: the anatomy 0-20 / 20-60 px in from the beam, the beam itself
+            depth = cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, 5)
+            beam_depth = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, 5)
+            shown_crop = display[crop]
+            scores[name]["skin"] = {"0-20": float(shown_crop[inside & (depth <= 20)].mean()),
+                                    "20-60": float(shown_crop[inside & (depth > 20) & (depth <= 60)].mean()),
+                                    "beam": float(shown_crop[beam_depth > 10].mean())}
     return scores
 
 
@@ -127,7 +135,7 @@ def test_chest_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):
 
 
 @pytest.mark.parametrize("name, measured", [("RG1_UNCR", "2.81 -> 3.21 (window alone 2.74), noise 1.19 vs 1.34"),
-                                            ("RG3_UNCR", "3.01 -> 3.56 (window alone 3.37), noise 1.37 vs 1.72")])
+                                            ("RG3_UNCR", "3.01 -> 3.41 (window alone 3.26), noise 1.37 vs 1.53")])
 def test_cr_anatomy_gains_contrast_with_less_noise_than_clahe(cr_scores, name, measured):
     """GCF on the largest box of anatomy only (no direct exposure): it rises, with less noise than CLAHE.
 
@@ -147,22 +155,36 @@ def test_leg_whole_field_shortfall_is_the_beam_and_the_skin_line(cr_scores):
     The stretched input spends its darkest ~15 % of the display on the direct exposure beside
     the leg (its noise and glow, then a step up to the thinnest tissue at the skin); the
     display path shows the beam black and gives that range to the anatomy. Measured (parts of
-    the box's GCF, ``core.metrics.gcf_by_region``): anatomy 1.90 -> 2.10, direct exposure
-    0.28 -> 0.13, the superpixels on the skin line 0.93 -> 0.72.
+    the box's GCF, ``core.metrics.gcf_by_region``): anatomy 1.90 -> 1.99, direct exposure
+    0.28 -> 0.17, the superpixels on the skin line 0.93 -> 0.77 (before the thinnest tissue
+    was lifted off black: 2.10, 0.13, 0.72).
     """
     parts = cr_scores["RG3_UNCR"]["gcf_parts"]
     (anatomy_in, beam_in, outline_in), (anatomy_ours, beam_ours, outline_ours) = parts["input"], parts["ours"]
-    assert anatomy_ours > 1.05 * anatomy_in, parts
-    assert beam_ours < 0.6 * beam_in and outline_ours < 0.9 * outline_in, parts
+    assert anatomy_ours > 1.02 * anatomy_in, parts
+    assert beam_ours < 0.7 * beam_in and outline_ours < 0.9 * outline_in, parts
     assert sum(parts["input"]) == pytest.approx(cr_scores["RG3_UNCR"]["gcf_input"], abs=0.002)
 
 
+def test_leg_skin_line_shows_grey_against_a_black_beam(cr_scores):
+    """The thinnest tissue beside the direct exposure is grey, the beam black, and no rim at the skin.
+
+    Measured 0-20 px in 0.16, 20-60 px 0.27, beam 0.000 (before the foot lift: 0.10, 0.24; the
+    stretched input 0.24, 0.38 over a beam at 0.04).
+    """
+    skin = cr_scores["RG3_UNCR"]["skin"]
+    assert skin["beam"] <= 0.005, skin
+    assert skin["0-20"] >= 0.13, skin
+    assert skin["0-20"] < skin["20-60"], skin  # rising into the body: no bright rim along the skin
+
+
 @pytest.mark.xfail(strict=True, reason="on the whole exposed field the leg's GCF stays below its stretched "
-                                       "input's (2.95 vs 3.11): the input shows the direct exposure (41 % of "
+                                       "input's (2.94 vs 3.11): the input shows the direct exposure (41 % of "
                                        "the box) dark grey with its noise and a step up to the skin, ours shows "
                                        "it black and gives that display range to the anatomy (test above); "
                                        "lifting the anatomy's foot off black trades the anatomy's GCF for the "
-                                       "box's about 1:1 (benchmarks/eval_gcf_regions.py)")
+                                       "box's about 1:1 (benchmarks/eval_gcf_regions.py); the default lifts "
+                                       "only the foot's darkest part, for the skin line")
 def test_leg_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):
     score = cr_scores["RG3_UNCR"]
     assert score["gcf_ours"] > score["gcf_input"] and score["noise_ratio_ours"] < score["noise_ratio_clahe"], score
