@@ -18,7 +18,8 @@ import os
 
 import numpy as np
 import pytest
-from scenarios.corpus import data_dir, evaluate, flat_pattern_left, make_scenario
+from scenarios.corpus import (data_dir, evaluate, flat_pattern_left, flat_pattern_resolution, make_scenario,
+                              plain_flat_division)
 
 from napari_dslrxr.core.pipeline import process_frame
 
@@ -42,6 +43,11 @@ MAX_BLANKED = 0.01  # share of the anatomy outside the region (filled, not shown
 MAX_CLIPPED = 0.01  # share of the anatomy at the display's black or white end
 MIN_POLARITY_R = 0.3  # correlation of the display with the true attenuation
 MAX_FLAT_LEFT = 0.5  # share of the flat-field pattern left (no flat frame: 0.7-1.6)
+#: The flat-pattern bound holds where the metric can read the frame: its standard error on the
+#: frame's own plain flat-field division (where it should read 0) at most 0.2, so 0.5 is 2.5
+#: of them. Above (4 of 258 exposed frames of the sets run so far: a small anatomy on a small
+#: screen) the plain division itself read 0.54 and 0.80 (seeds 2009, 2015).
+MAX_FLAT_LEFT_SE = 0.2
 #: Median over the corpus, starved frames aside (0.035 now): a flat corrected three quarters
 #: of the way leaves 0.26 (only 2 of 37 scenarios above the per-scenario bound), half-way 0.5.
 MAX_MEDIAN_FLAT_LEFT = 0.2
@@ -64,7 +70,7 @@ def _run(seed: int, family: str = "corpus") -> tuple[dict, dict, object]:
 def _check(seeds, family: str = "corpus", invariants=("blanked", "clipped", "polarity_r", "flat_left")) -> dict:
     if not (data_dir() / "cr_dicom").is_dir():
         pytest.skip(f"real data folder {data_dir()} is absent (set DSLRXR_DATA)")
-    rows, problems, starved = [], [], []
+    rows, problems, starved, unreadable = [], [], [], 0
     for seed in seeds:
         figures, info, result = _run(seed, family)
         rows.append(figures)
@@ -72,6 +78,8 @@ def _check(seeds, family: str = "corpus", invariants=("blanked", "clipped", "pol
         warned = any(w.startswith(("region: no screen found", "display implausible"))
                      for w in result.results["warnings"])
         where = f"seed {seed} {family} ({info['source']} {info['layout']} {info['exposure']} room {info['room']})"
+        readable = figures.get("flat_left_se", 0.0) <= MAX_FLAT_LEFT_SE
+        unreadable += not readable
         figures = {key: value for key, value in figures.items() if key in invariants}
         if figures.get("blanked", 0.0) > MAX_BLANKED:
             problems.append(f"{where}: {100 * figures['blanked']:.1f} % of the anatomy blanked")
@@ -79,7 +87,7 @@ def _check(seeds, family: str = "corpus", invariants=("blanked", "clipped", "pol
             problems.append(f"{where}: {100 * figures['clipped']:.1f} % of the anatomy clipped, silently")
         if figures["polarity_r"] < MIN_POLARITY_R:
             problems.append(f"{where}: polarity r = {figures['polarity_r']:.2f}")
-        if figures.get("flat_left", 0.0) > MAX_FLAT_LEFT and info["exposure"] != "starved":
+        if figures.get("flat_left", 0.0) > MAX_FLAT_LEFT and info["exposure"] != "starved" and readable:
             problems.append(f"{where}: {100 * figures['flat_left']:.0f} % of the flat-field pattern left")
         # the sidecar's own clipped fraction is the pipeline's view of the same thing
         reported = result.results["display"]["clipped_fraction"]
@@ -91,6 +99,7 @@ def _check(seeds, family: str = "corpus", invariants=("blanked", "clipped", "pol
         print(f"  {key:10s} median {np.median(values):.4f}  95th {np.percentile(values, 95):.4f}  "
               f"max {values.max():.4f}  min {values.min():.4f}")
     print(f"  clipped > 1 %: {int(np.sum(summary['clipped'] > MAX_CLIPPED))} (each with a warning)")
+    print(f"  flat pattern not readable (standard error > {MAX_FLAT_LEFT_SE}): {unreadable}")
     assert not problems, "\n".join(problems)
     summary["starved"] = np.array(starved)
     return summary
@@ -170,3 +179,20 @@ HELD_OUT_SETS = {"dense_area_spatial_rule": (DENSE_AREA_HELD_OUT_SEEDS, "dense_a
 def test_held_out_sets(name):
     seeds, family = HELD_OUT_SETS[name]
     _check(seeds, family)
+
+
+def test_flat_pattern_metric_knows_where_it_cannot_read():
+    """On a small anatomy on a small screen the metric reads a pattern even on the frame's own
+    plain flat-field division (0.5-0.8 on held-out seeds 2009 and 2015, where the pipeline's
+    stage gives the same): its standard error there is above the bound, so those frames are
+    not judged on it; on every exposed CI frame it is well below, so none is let off."""
+    if not (data_dir() / "cr_dicom").is_dir():
+        pytest.skip(f"real data folder {data_dir()} is absent (set DSLRXR_DATA)")
+    for seed in (2009, 2015):
+        scenario = make_scenario(seed)
+        assert flat_pattern_left(plain_flat_division(scenario), scenario) > MAX_FLAT_LEFT
+        assert flat_pattern_resolution(scenario) > MAX_FLAT_LEFT_SE
+    for seed in range(0, 60, 3):
+        scenario = make_scenario(seed)
+        if scenario.info["exposure"] != "starved":
+            assert flat_pattern_resolution(scenario) < 0.7 * MAX_FLAT_LEFT_SE, seed
