@@ -300,6 +300,17 @@ def flat_exposed_area(light: np.ndarray) -> np.ndarray | None:
     return filled.astype(bool) if 0.02 <= share <= 0.95 else None
 
 
+def _away_from_rim(flat_level: np.ndarray, radius_px: int = 7, share: float = 0.6) -> np.ndarray:
+    """Pixels the flat frame lights at least ``share`` of the brightest light within
+    ``radius_px`` (both lightly smoothed against its noise): the screen's soft rim, where the
+    flat falls off, is left out, also where it meets the frame's edge (the 2 px shrink of
+    :func:`flat_exposed_area` does not reach a rim lying along the frame's edge, whose
+    lifted values took the top of the value-of-interest window)."""
+    smooth = cv2.GaussianBlur(flat_level.astype(np.float32), (0, 0), 1.0)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+    return smooth >= share * cv2.dilate(smooth, kernel)
+
+
 def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
                   illumination: np.ndarray | None = None) -> Region:
     """Find the exposed screen quadrilateral in a (flat-fielded) frame, only on strong evidence.
@@ -392,8 +403,9 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
         # a screen the frame cut at a corner is a pentagon, which four corners cannot follow: the
         # polygon may hold a wedge of room and soft rim beside that corner (where the flat-field
         # division lifts the room to any level and takes the value-of-interest window); keep
-        # only what the open-beam flat saw lit, inside its rim
-        mask &= cv2.resize(exposed[0].astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+        # only what the open-beam flat saw lit, away from its rim
+        lit = exposed[0] & _away_from_rim(flat_level)
+        mask &= cv2.resize(lit.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
     return Region(mask, poly, detected=True, evidence=evidence)
 
 
