@@ -284,3 +284,46 @@ def test_a_dark_area_the_flat_saw_exposed_is_not_the_room(rng):
     flat_light = cv2.GaussianBlur(polygon_mask((h, w), corners).astype(np.float32), (0, 0), 1.0) + 0.004
     found = detect_screen(screen / flat_light, illumination=flat_light)
     assert found.detected and found.evidence["flat_lit_surround"] == 0.0
+
+
+@pytest.mark.parametrize("edge", ["left", "right", "bottom", "top"])
+@pytest.mark.parametrize("with_flat", [False, True])
+def test_a_screen_running_off_a_frame_edge_keeps_everything_up_to_that_edge(rng, edge, with_flat):
+    """A rotated screen whose one side lies partly beyond a frame edge and another wholly beyond
+    the next one (the frame cuts one of its corners off, so the visible screen is a pentagon): the region reaches that frame edge
+    and blanks none of the screen away from its rim. A four-corner fit of the pentagon cut off
+    a wedge beside the frame edge (1-5 % of the anatomy on corpus frames) while only the side
+    lying along the frame edge counted as open."""
+    h, w = 180, 270
+    # the screen's top-left corner 30 px beyond the left edge, its top side beyond the top edge;
+    # the other orientations are this frame turned
+    corners = np.array([[-30.0, -12.0], [180.0, -6.0], [196.0, 140.0], [14.0, 158.0]])
+    turns = {"left": 0, "top": 1, "right": 2, "bottom": 3}[edge]
+    shape = (h, w) if turns % 2 == 0 else (w, h)
+    frame_shape = (h, w)
+    for _ in range(turns):  # rotate the corners 90 degrees clockwise with the frame
+        frame_shape = (frame_shape[1], frame_shape[0])
+        corners = np.column_stack([frame_shape[1] - 1 - corners[:, 1], corners[:, 0]])
+    assert frame_shape == shape
+    frame, truth = _quad_frame(rng, shape, corners)
+    illumination = None
+    if with_flat:
+        illumination = cv2.GaussianBlur(truth.astype(np.float32), (0, 0), 1.0) + 0.004
+        frame = frame / illumination
+    region = detect_screen(frame, illumination=illumination)
+    assert region.detected, region.evidence
+    # both frame edges that cut the screen are open sides (the next edge clockwise is the other)
+    cut_too = {"left": "top", "top": "right", "right": "bottom", "bottom": "left"}[edge]
+    assert {edge, cut_too} <= set(region.evidence["open_sides"]), region.evidence["open_sides"]
+    # the screen away from its soft rim (the rim only where the frame did not cut it)
+    away_from_rim = cv2.erode(truth.astype(np.uint8), np.ones((9, 9), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                              borderValue=1).astype(bool)
+    blanked = (away_from_rim & ~region.mask).sum() / away_from_rim.sum()
+    assert blanked < 0.002, blanked
+    # the room the closing adds beside the cut corner is small, and gone where the flat saw it dark
+    room = (region.mask & ~truth).sum() / truth.sum()
+    assert room < (0.005 if with_flat else 0.03), room
+    if with_flat:
+        # nor the soft rim, even where it meets the frame's edge: there the flat-field division of
+        # little light by little light lifts it to any level, which takes the display window
+        assert not (region.mask & (illumination < 0.5)).any()

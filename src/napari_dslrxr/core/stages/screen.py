@@ -13,6 +13,8 @@ so the screen's soft rim is excluded (not on sides the frame cut).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import cv2
 import numpy as np
 
@@ -78,8 +80,33 @@ def _noise_map(small: np.ndarray, tile_px: int = 16) -> np.ndarray:
                       interpolation=cv2.INTER_NEAREST)
 
 
-def _candidate_corners(small: np.ndarray, scaled: np.ndarray, threshold: float) -> np.ndarray | None:
-    """Four corners (small-image x, y) of the largest component above ``threshold`` in ``scaled``."""
+#: Frame edges in the order of their outward directions below.
+_FRAME_EDGES = ("left", "top", "right", "bottom")
+_EDGE_OUTWARD = np.array([[-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
+
+
+def _frame_cuts(component: np.ndarray, corners: np.ndarray) -> list[str]:
+    """The frame edges beyond which a bright component goes on where its four-corner fit left
+    it out: a piece of the component outside the fitted quadrilateral (grown by a pixel), of
+    at least 16 px and 0.2 % of the component, that touches the frame edge. A corner that
+    merely grazes the edge leaves no such piece; a screen the frame cut at a corner (a
+    pentagon, which the fit turns into a quadrilateral with a side across the screen) does."""
+    inside = cv2.dilate(polygon_mask(component.shape, corners).astype(np.uint8), np.ones((3, 3), np.uint8))
+    left_out = (component.astype(bool) & ~inside.astype(bool)).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(left_out, connectivity=8)
+    min_area = max(16.0, 0.002 * np.count_nonzero(component))
+    cuts = set()
+    for label in range(1, n):
+        if stats[label, cv2.CC_STAT_AREA] >= min_area:
+            piece = labels == label
+            lines = (piece[:, 0], piece[0], piece[:, -1], piece[-1])
+            cuts.update(edge for edge, line in zip(_FRAME_EDGES, lines, strict=True) if line.any())
+    return [edge for edge in _FRAME_EDGES if edge in cuts]
+
+
+def _candidate_corners(small: np.ndarray, scaled: np.ndarray, threshold: float) -> tuple[np.ndarray, list[str]] | None:
+    """Four corners (small-image x, y) of the largest component above ``threshold`` in ``scaled``,
+    and the frame edges that component runs off (:func:`_frame_cuts`)."""
     binary = (scaled > threshold).astype(np.uint8)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)
@@ -106,7 +133,8 @@ def _candidate_corners(small: np.ndarray, scaled: np.ndarray, threshold: float) 
         return None
     contour = max(contours, key=cv2.contourArea)
     hull = cv2.convexHull(contour)
-    return _refine_corners(contour, _four_corners(hull))
+    corners = _refine_corners(contour, _four_corners(hull))
+    return corners, _frame_cuts(component, corners)
 
 
 #: Border points averaged for one contrast measurement (px along the border).
@@ -114,7 +142,8 @@ _BORDER_RUN_PX = 9
 
 
 def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
-                    params: RegionParams, flat_lit: np.ndarray | None = None) -> dict:
+                    params: RegionParams, flat_lit: np.ndarray | None = None,
+                    frame_cuts: Sequence[str] = ()) -> dict:
     """How strongly the image supports a screen quadrilateral (all on the analysis copy).
 
     Along each side of the quadrilateral not lying on the frame's edge, at points every
@@ -127,6 +156,14 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
     surround's median and the screen's rim. A border point counts only when the image just
     outside it is close to the surround's level (within a quarter of the step), so a step from
     bright to medium (direct exposure beside a limb) is no evidence.
+
+    A side is open (the frame cut the screen there; :func:`_screen_polygon` takes it to the
+    frame's edge) when it lies along a frame edge (median distance under 3 px: no border to
+    test, left out of the border test), or when it faces a frame edge the bright component
+    it came from runs off (``frame_cuts``, :func:`_frame_cuts`): the screen goes on beyond
+    that edge, wherever the fit put the side (a four-corner fit of a screen the frame cut at
+    a corner, a pentagon, may put it across the screen inside the frame). A corner merely
+    grazing the frame's edge opens nothing.
 
     Returns
     -------
@@ -148,6 +185,7 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
     rim = quad.astype(bool) & ~cv2.erode(quad, kernel).astype(bool)
     surround_level = float(np.median(small[surround])) if surround.any() else float(small.min())
     ratios, open_sides, total_points = [], [], 0
+    outward = np.zeros((4, 2))
     for i in range(4):
         a, b = corners[i], corners[(i + 1) % 4]
         length = float(np.hypot(*(b - a)))
@@ -157,13 +195,14 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
         normal = np.array([-direction[1], direction[0]])
         if normal @ (centre - a) < 0:
             normal = -normal  # points into the screen
+        outward[i] = -normal
         t = np.arange(0.05 * length, 0.95 * length, 1.0)
         points = a + t[:, None] * direction
         # a side along the frame's edge is open: the frame cut the screen there, no surround to see
         distances = np.stack([points[:, 0], points[:, 1], w - 1 - points[:, 0], h - 1 - points[:, 1]])
         nearest = int(np.argmin(np.median(distances, axis=1)))
         if np.median(distances[nearest]) < 3.0:
-            open_sides.append((i, ("left", "top", "right", "bottom")[nearest]))
+            open_sides.append((i, _FRAME_EDGES[nearest]))
             continue
         inside = _sample(small, points[:, None, :] + inward_offsets[None, :, None] * normal).mean(axis=1)
         outside = _sample(small, points[:, None, :] - inward_offsets[None, :, None] * normal).mean(axis=1)
@@ -180,6 +219,13 @@ def screen_evidence(small: np.ndarray, noise: np.ndarray, corners: np.ndarray,
         step = np.convolve(step, np.ones(run) / run, mode="same")
         step_sigma = np.maximum(sigma, 1e-12) * np.sqrt(2.0 / (run * len(inward_offsets)))
         ratios.append(np.where(valid & to_surround, step / np.where(np.isfinite(step_sigma), step_sigma, np.inf), 0.0))
+    for edge in frame_cuts:
+        # the side that faces a frame edge the screen runs off is open, wherever the fit put it
+        # (its border is still tested: the part of it inside the frame is seen)
+        side = int(np.argmax(outward @ _EDGE_OUTWARD[_FRAME_EDGES.index(edge)]))
+        if side not in [i for i, _ in open_sides] and outward[side] @ _EDGE_OUTWARD[_FRAME_EDGES.index(edge)] > np.sqrt(0.5):
+            open_sides.append((side, edge))
+    open_sides.sort()
     evidence: dict = {"open_sides": [edge for _, edge in open_sides], "open_side_index": [i for i, _ in open_sides]}
     if not ratios or total_points < 16:
         evidence.update(accepted=False, border_coverage=0.0, border_contrast_sigma=0.0, bright_surround=None,
@@ -252,6 +298,17 @@ def flat_exposed_area(light: np.ndarray) -> np.ndarray | None:
     filled = cv2.erode(filled, kernel)
     share = float(filled.mean())
     return filled.astype(bool) if 0.02 <= share <= 0.95 else None
+
+
+def _away_from_rim(flat_level: np.ndarray, radius_px: int = 7, share: float = 0.6) -> np.ndarray:
+    """Pixels the flat frame lights at least ``share`` of the brightest light within
+    ``radius_px`` (both lightly smoothed against its noise): the screen's soft rim, where the
+    flat falls off, is left out, also where it meets the frame's edge (the 2 px shrink of
+    :func:`flat_exposed_area` does not reach a rim lying along the frame's edge, whose
+    lifted values took the top of the value-of-interest window)."""
+    smooth = cv2.GaussianBlur(flat_level.astype(np.float32), (0, 0), 1.0)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+    return smooth >= share * cv2.dilate(smooth, kernel)
 
 
 def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
@@ -341,7 +398,15 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
         return nothing(evidence.pop("reason"), **{k: v for k, v in evidence.items() if k != "accepted"},
                        candidate_xy=corners.round(1).tolist())
     poly = _screen_polygon(corners, evidence, params, (h, w))
-    return Region(polygon_mask((h, w), poly), poly, detected=True, evidence=evidence)
+    mask = polygon_mask((h, w), poly)
+    if evidence["open_sides"] and exposed[0] is not None:
+        # a screen the frame cut at a corner is a pentagon, which four corners cannot follow: the
+        # polygon may hold a wedge of room and soft rim beside that corner (where the flat-field
+        # division lifts the room to any level and takes the value-of-interest window); keep
+        # only what the open-beam flat saw lit, away from its rim
+        lit = exposed[0] & _away_from_rim(flat_level)
+        mask &= cv2.resize(lit.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+    return Region(mask, poly, detected=True, evidence=evidence)
 
 
 def _light_seen(arr: np.ndarray, illumination: np.ndarray | None,
@@ -392,10 +457,11 @@ def _best_candidate(small: np.ndarray, scaled: np.ndarray, noise: np.ndarray,
             thresholds.append(low)
     best, first = None, None
     for threshold in thresholds:
-        corners = _candidate_corners(small, scaled, threshold)
-        if corners is None:
+        candidate = _candidate_corners(small, scaled, threshold)
+        if candidate is None:
             continue
-        evidence = screen_evidence(small, noise, corners, params, flat_lit)
+        corners, frame_cuts = candidate
+        evidence = screen_evidence(small, noise, corners, params, flat_lit, frame_cuts)
         area = cv2.contourArea(order_corners(corners).astype(np.float32))
         if first is None or (evidence.get("field_edge") and not first[1].get("field_edge")):
             first = (corners, evidence)  # a field's edge is the better account of a refusal
@@ -409,15 +475,31 @@ def _best_candidate(small: np.ndarray, scaled: np.ndarray, noise: np.ndarray,
 
 def _screen_polygon(corners: np.ndarray, evidence: dict, params: RegionParams, shape: tuple[int, int]) -> np.ndarray:
     """The accepted screen's corners shrunk inside its rim, except on the sides the frame cut,
-    which go on (or beyond) the frame's edge. Takes ``open_side_index`` out of ``evidence``."""
+    which go on (or beyond) the frame's edge. Takes ``open_side_index`` out of ``evidence``.
+
+    An open side's corner moves along the other side that meets there (when that one is a
+    seen border) until it reaches the frame's edge, so the seen border keeps its line: moved
+    straight out to the edge instead, a corner inside the frame turned that border and cut a
+    wedge of the screen off (or added one of the room). Where both sides at a corner are open,
+    the corner goes to the frame's corner (or stays beyond it)."""
     h, w = shape
     poly = shrink_polygon(corners, params.shrink_fraction)
-    # a side the frame cut has no rim to drop: put it on (or beyond) the frame's edge
+    shrunk = poly.copy()
     edge_value = {"left": (0, -0.5, min), "top": (1, -0.5, min), "right": (0, w - 0.5, max), "bottom": (1, h - 0.5, max)}
-    for index, edge in zip(evidence.pop("open_side_index"), evidence["open_sides"], strict=True):
+    open_edge = dict(zip(evidence.pop("open_side_index"), evidence["open_sides"], strict=True))
+    for index, edge in open_edge.items():
         axis, value, pick = edge_value[edge]
-        for corner in (index, (index + 1) % 4):
+        for corner, other in ((index, (index - 1) % 4), ((index + 1) % 4, (index + 1) % 4)):
+            if pick(corners[corner, axis], value) == corners[corner, axis]:
+                poly[corner, axis] = corners[corner, axis]  # on or beyond the frame's edge: not shrunk
+                continue
+            # the other side at this corner runs from ``far`` through the corner
+            far = shrunk[(corner + 1) % 4] if other == corner else shrunk[other]
+            step = shrunk[corner] - far
+            if other not in open_edge and abs(step[axis]) > 1e-6 * max(h, w):
+                reach = shrunk[corner] + step * (value - shrunk[corner, axis]) / step[axis]
+                if np.hypot(*(reach - shrunk[corner])) < max(h, w):
+                    poly[corner] = reach
+                    continue
             poly[corner, axis] = pick(corners[corner, axis], value)
     return poly
-
-
