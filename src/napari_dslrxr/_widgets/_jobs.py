@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from ..core.errors import DslrxrError, WorkCancelled
+from ._layers import NEXT_STEP_ADDS_LAYER
 
 
 _LOG = logging.getLogger(__name__)
@@ -261,6 +262,64 @@ class JobPanel:
         notify_info(f"{self.desc}: cancelled")
 
 
+def hold_repaints(widget: Any) -> Callable[[], None]:
+    """Hold back the repaints of ``widget``'s window (the viewer's main window when the widget
+    is docked in it); return the function that lets them go.
+
+    A step that adds a layer is followed by the window's repaint (layer list, new controls,
+    canvas). Qt serves that repaint before any timer or input, so the step and the repaint
+    froze the viewer as one block (together over 0.1 s under software GL). With updates off
+    during the step, Qt repaints the window once when they are turned on again (deferred), in
+    a later turn, and the viewer answers in between. A window already held is left alone.
+    """
+    window = None if widget is None else widget.window()
+    if window is None or not window.updatesEnabled():
+        return lambda: None
+    window.setUpdatesEnabled(False)
+
+    def release() -> None:
+        try:
+            window.setUpdatesEnabled(True)
+        except RuntimeError:  # the window was closed meanwhile
+            pass
+
+    return release
+
+
+_COLLECTOR_HOLDS = [0]
+
+
+def hold_collections() -> Callable[[], None]:
+    """Postpone Python's automatic garbage collections while a result is shown; return the
+    function that allows them again (call it once).
+
+    Adding a layer allocates tens of thousands of objects, so the collector's full pass (over
+    every object made since the viewer opened: about 0.1 s of GUI time after a few results)
+    tended to fall inside a step that adds a layer, and the two froze the viewer as one block.
+    Held for the second or so a result takes to show, it runs after the result is shown, not
+    on top of a step's work. Nested holds (two results showing at once) release at the last; a collector the
+    host application turned off stays off.
+    """
+    import gc
+
+    if _COLLECTOR_HOLDS[0] == 0:
+        if not gc.isenabled():
+            return lambda: None
+        gc.disable()
+    _COLLECTOR_HOLDS[0] += 1
+    released = [False]
+
+    def release() -> None:
+        if released[0]:
+            return
+        released[0] = True
+        _COLLECTOR_HOLDS[0] -= 1
+        if _COLLECTOR_HOLDS[0] == 0:
+            gc.enable()
+
+    return release
+
+
 def job_done(button: Any, panel: JobPanel, readout: Any) -> Callable[[], None]:
     """The ``on_finished`` of a widget's job (any outcome): its button enabled again, and the
     read-out, if still at a "...ing..." text, replaced by the outcome in the panel's status
@@ -296,7 +355,10 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
         hands the event loop back (the viewer draws and takes input) before the next step
         runs: a result made of several new layers is shown one layer per event-loop turn
         (napari builds each new layer's controls and visual on the GUI thread, 0.1-0.4 s each
-        under software GL), and the job counts as finished after the last step.
+        under software GL), and the job counts as finished after the last step. A step that
+        yields :data:`NEXT_STEP_ADDS_LAYER` announces that the next one adds a layer: the
+        window's repaint after it waits a turn (:func:`hold_repaints`). Python's automatic
+        garbage collections wait until the last step (:func:`hold_collections`).
     on_finished : callable, optional
         Called on the GUI thread once the job is over for the widget: after success, error,
         or at once when Cancel is pressed (e.g. to re-enable a button).
@@ -359,23 +421,33 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
             shown = on_returned(result)
             if isinstance(shown, Iterator):
                 showing["steps"] = shown
+                showing["release_collector"] = hold_collections()
                 _next_step()
 
     def _next_step() -> None:
         from qtpy.QtCore import QTimer
 
         steps = showing["steps"]
+        release = showing.pop("release_repaints", lambda: None)
         try:
-            next(steps)
+            if next(steps) is NEXT_STEP_ADDS_LAYER:
+                showing["release_repaints"] = hold_repaints(None if panel is None else panel.row.native)
         except StopIteration:
             steps = None
         except Exception as exc:  # noqa: BLE001 - the viewer must survive any failure
             notify_error(exc, context=desc)
             steps = None
-        if steps is not None:
+        QTimer.singleShot(SHOW_STEP_DELAY_MS, lambda: _repainted(release, steps is not None))
+
+    def _repainted(release: Callable[[], None], more: bool) -> None:
+        from qtpy.QtCore import QTimer
+
+        release()  # a held window repaints now, a turn after the step that added a layer
+        if more:
             QTimer.singleShot(SHOW_STEP_DELAY_MS, _next_step)
             return
         showing["steps"] = None
+        showing.pop("release_collector", lambda: None)()
         if showing["finish_after"]:
             _finished()
 

@@ -160,14 +160,22 @@ def rgb_thumbnail_from_contrast_limits(layer: napari.layers.Image) -> None:
     replace()
 
 
+#: Yielded by a display step (see ``run_in_worker``) when the next step adds a layer.
+NEXT_STEP_ADDS_LAYER = "next step adds a layer"
+
+
 def show_layer_steps(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: str = "image",
-                     **kwargs: Any) -> Generator[None, None, napari.layers.Layer]:
-    """:func:`show_layer` over two event-loop turns when the layer is new: added hidden, shown
-    at the next turn (``yield`` between them; for a generator ``on_returned`` of
-    :func:`run_in_worker`). napari builds a new layer's controls and visual when it is added
-    and compiles its shaders when it first draws it; one after the other they froze the
-    viewer longer than either alone. ``layer = yield from show_layer_steps(...)``."""
-    reveal = name not in viewer.layers and kwargs.get("visible", True)
+                     **kwargs: Any) -> Generator[str | None, None, napari.layers.Layer]:
+    """:func:`show_layer` over event-loop turns when the layer is new: announced
+    (:data:`NEXT_STEP_ADDS_LAYER`), added hidden, shown at the next turn (``yield`` between
+    them; for a generator ``on_returned`` of :func:`run_in_worker`). napari builds a new
+    layer's controls and visual when it is added and compiles its shaders when it first
+    draws it; one after the other they froze the viewer longer than either alone.
+    ``layer = yield from show_layer_steps(...)``."""
+    new = name not in viewer.layers
+    reveal = new and kwargs.get("visible", True)
+    if new:
+        yield NEXT_STEP_ADDS_LAYER
     if reveal:
         kwargs["visible"] = False
     layer = show_layer(viewer, data, name, layer_type, **kwargs)
@@ -175,6 +183,45 @@ def show_layer_steps(viewer: napari.Viewer, data: np.ndarray, name: str, layer_t
         yield
         layer.visible = True
     return layer
+
+
+#: New characters a text layer draws per event-loop turn when it is first shown (napari
+#: renders each new glyph of the canvas font once, about 6 ms each on the GUI thread).
+GLYPHS_PER_STEP = 4
+
+
+def reveal_text_steps(layer: napari.layers.Layer, feature: str, texts: list[str],
+                      glyphs_per_step: int = GLYPHS_PER_STEP) -> Iterator[None]:
+    """Show a hidden layer whose text labels are ``layer.features[feature]`` (``texts``),
+    its new glyphs rendered a few per event-loop turn.
+
+    The canvas renders a glyph the first time it draws it; a label layer's first draw
+    rendered all of them in one turn (20-odd glyphs: 0.1-0.2 s), on top of the layer's
+    first draw (its shaders). The layer is drawn transparent (opacity 0), first without
+    text, then with its labels growing a few new characters per turn, then shown at its own
+    opacity with the whole labels.
+    """
+    opacity = layer.opacity
+    prefixes: list[list[str]] = [[""] * len(texts)]  # the layer's first draw (its shaders) without text
+    seen: set[str] = set()
+    batch: set[str] = set()
+    cut = [0] * len(texts)
+    for i, text in enumerate(texts):
+        for j, char in enumerate(text):
+            if char not in seen and char not in batch:
+                if len(batch) == glyphs_per_step:
+                    prefixes.append([t[:c] for t, c in zip(texts, cut)])
+                    seen |= batch
+                    batch = set()
+                batch.add(char)
+            cut[i] = j + 1
+    layer.opacity = 0.0
+    layer.visible = True
+    for partial in prefixes:
+        layer.features = {feature: partial}
+        yield
+    layer.features = {feature: list(texts)}
+    layer.opacity = opacity
 
 
 def finish_steps(steps: Iterator[None]) -> Any:

@@ -29,7 +29,8 @@ from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker
-from ._layers import remove_layer, reset_choices, same_geometry, show_layer, show_layer_steps, single_channel_layers
+from ._layers import (NEXT_STEP_ADDS_LAYER, remove_layer, reset_choices, reveal_text_steps, same_geometry,
+                      show_layer_steps, single_channel_layers)
 
 if TYPE_CHECKING:
     import napari
@@ -214,8 +215,9 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         width = float(np.shape(layer.data)[1]) * scale[1]
         beside = np.array([0.0, width * 1.05])
         for z, stage, shift in ((result.z_base, "base model", 0.0 * beside), (result.z_final, "final model", beside)):
-            show_layer(self._viewer, z, f"residual z ({stage})", "image", colormap="bwr", contrast_limits=Z_LIMITS,
-                       scale=z_scale, translate=tuple(np.asarray(z_translate) + shift), visible=False)
+            yield from show_layer_steps(self._viewer, z, f"residual z ({stage})", "image", colormap="bwr",
+                                        contrast_limits=Z_LIMITS, scale=z_scale,
+                                        translate=tuple(np.asarray(z_translate) + shift), visible=False)
             yield
             yield from show_layer_steps(self._viewer, binned[stage], f"residual z {block}x{block} ({stage})", "image",
                                         colormap="bwr", contrast_limits=BINNED_Z_LIMITS, scale=binned_scale,
@@ -223,14 +225,18 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
             yield
         top_left = np.asarray(layer.translate[-2:], float) - scale * 0.5
         added = ", ".join(term.effect.replace("_", " ") for term in result.added) or "nothing found"
-        new = self._show_map_labels(np.array([top_left, top_left + beside]), width,
-                                    ["before (scene as given)", f"after (+ {added})"])
+        if MAP_LABELS not in self._viewer.layers:
+            yield NEXT_STEP_ADDS_LAYER
+        texts = ["before (scene as given)", f"after (+ {added})"]
+        new = self._show_map_labels(np.array([top_left, top_left + beside]), width, texts)
         yield
         if new is not None:
-            new.visible = True
+            yield from reveal_text_steps(new, "what", texts)
             yield
         rectangles = [np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float) - 0.5
                       for r0, c0, r1, c1 in result.regions]
+        if rectangles and "mismatch regions" not in self._viewer.layers:
+            yield NEXT_STEP_ADDS_LAYER
         new = self._show_regions(rectangles, layer)
         yield
         if new is not None:
