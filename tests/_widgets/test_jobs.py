@@ -77,3 +77,52 @@ def test_the_progress_bar_moves_with_a_deferred_repaint_not_an_immediate_one(qtb
         assert panel.bar.value == permille and bar.value() == permille
         assert not paints, "the bar repainted synchronously (and with it the whole window)"
         qtbot.waitUntil(lambda: bool(paints), timeout=2_000)  # repainted at the next turn
+
+
+def test_a_step_that_adds_a_layer_has_the_window_repainted_a_turn_later_and_collections_wait(qtbot, wait_for_worker):
+    """A step announced by NEXT_STEP_ADDS_LAYER runs with the window's updates off (its
+    repaint is not served in the same block); they are on again before the next step and
+    after the last, and the garbage collector, off while the result shows, is on again."""
+    import gc
+
+    from napari_dslrxr._widgets._jobs import JobPanel
+    from napari_dslrxr._widgets._layers import NEXT_STEP_ADDS_LAYER
+
+    panel = JobPanel()
+    window = panel.row.native
+    qtbot.addWidget(window)
+    window.show()
+    seen: list[tuple[str, bool, bool]] = []  # (step, window updates on, collector on)
+
+    def show(_value):
+        seen.append(("plain", window.updatesEnabled(), gc.isenabled()))
+        yield NEXT_STEP_ADDS_LAYER
+        seen.append(("adds", window.updatesEnabled(), gc.isenabled()))
+        yield
+        seen.append(("after", window.updatesEnabled(), gc.isenabled()))
+
+    assert gc.isenabled()
+    worker = run_in_worker(lambda: 1, desc="adds", on_returned=show, panel=panel)
+    wait_for_worker(worker)
+    assert seen == [("plain", True, False), ("adds", False, False), ("after", True, False)]
+    assert window.updatesEnabled() and gc.isenabled()
+
+
+def test_collections_held_twice_resume_at_the_last_release_and_a_host_collector_left_off_stays_off():
+    import gc
+
+    from napari_dslrxr._widgets._jobs import hold_collections
+
+    assert gc.isenabled()
+    first, second = hold_collections(), hold_collections()
+    first()
+    first()  # a second call of the same release changes nothing
+    assert not gc.isenabled()
+    second()
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        hold_collections()()
+        assert not gc.isenabled()
+    finally:
+        gc.enable()

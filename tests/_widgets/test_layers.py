@@ -56,3 +56,23 @@ def test_colour_layer_of_counts_has_a_thumbnail_scaled_by_its_contrast_limits(ma
     assert rgb[:, :15].max() == 0 and rgb[:, 17:].min() == 255
     layer.contrast_limits = (0.0, 6000.0)  # the thumbnail follows (half grey on the right)
     assert 120 <= layer.thumbnail[:, 20, 0].min() <= layer.thumbnail[:, 20, 0].max() <= 135
+
+
+def test_text_labels_are_revealed_a_few_new_glyphs_per_step_then_whole_at_the_layer_opacity():
+    from napari_dslrxr._widgets._layers import reveal_text_steps
+
+    texts = ["before (scene as given)", "after (+ nothing found)"]
+    layer = SimpleNamespace(opacity=0.7, visible=False, features=None)
+    shown: list[list[str]] = []
+    for _ in reveal_text_steps(layer, "what", texts, glyphs_per_step=4):
+        assert layer.visible and layer.opacity == 0.0  # drawn, not yet seen
+        shown.append(list(layer.features["what"]))
+    assert shown[0] == ["", ""]  # the first draw has no text
+    drawn: set[str] = set()
+    for labels in shown[1:] + [texts]:
+        new = set("".join(labels)) - drawn
+        assert 0 < len(new) <= 4
+        assert all(text.startswith(label) for text, label in zip(texts, labels, strict=True))
+        drawn |= new
+    assert layer.features == {"what": texts} and layer.opacity == 0.7 and layer.visible
+    assert drawn == set("".join(texts))
