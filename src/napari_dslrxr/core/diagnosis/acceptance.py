@@ -236,16 +236,24 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
             say(f"{winner.term.name}: a generic smooth warp explains more (ΔBIC {warp.delta_bic:.1f} against "
                 f"{winner.delta_bic:.1f}) — not accepted")
             only_warp += 1
-            rejecting.append(warp)
+            _append_once(rejecting, warp)
             continue
-        beyond_generic = [(g, _delta_bic_beyond(problem, winner, g, opts, log_n)) for g in rejecting]
+        # each joint refit of the winner on top of a generic field is done once (the additive
+        # field can both have rejected an earlier candidate and be this one's smooth-light test)
+        beyond_of: dict[int, float] = {}
+
+        def beyond_generic_field(g: _Trial) -> float:
+            if id(g) not in beyond_of:
+                beyond_of[id(g)] = _delta_bic_beyond(problem, winner, g, opts, log_n)
+            return beyond_of[id(g)]
+
+        beyond_generic = [(g, beyond_generic_field(g)) for g in rejecting]
         if any(b <= opts.accept_delta_bic for _, b in beyond_generic):
             g, b = min(beyond_generic, key=lambda gb: gb[1])
             say(f"{winner.term.name}: ΔBIC {b:.1f} beyond the generic {g.term.name}, which explains "
                 f"more — not accepted")
             continue
-        beyond = (_delta_bic_beyond(problem, winner, additive, opts, log_n)
-                  if winner.term.name in SMOOTH_FIELD_TERMS else float("inf"))
+        beyond = (beyond_generic_field(additive) if winner.term.name in SMOOTH_FIELD_TERMS else float("inf"))
         if np.isfinite(beyond):
             comparison.append({"effect": winner.term.name, "delta_bic_beyond_smooth_light": round(beyond, 2)})
         like_smooth_light = False
@@ -254,7 +262,7 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
                 say(f"{winner.term.name}: ΔBIC {beyond:.1f} beyond a smooth additive light field, which "
                     f"explains more — not accepted")
                 only_smooth_light += 1
-                rejecting.append(additive)
+                _append_once(rejecting, additive)
                 continue
             # as good as the 14-parameter generic field and simpler: named, but not separable
             # from additive light in this recording
@@ -270,7 +278,7 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
                 say(f"{winner.term.name}: its field added to the light fits as well as multiplying it "
                     f"(χ² {twin.chi2:.1f} against {winner.chi2:.1f}) — additive light, not accepted")
                 only_smooth_light += 1
-                rejecting.append(twin)
+                _append_once(rejecting, twin)
                 continue
         gain = _heldout_gain(problem, layout, x, winner, train, test)
         if gain <= 0:
@@ -284,6 +292,11 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
     signature = (GENERIC_SIGNATURE["smooth_additive"] if only_smooth_light
                  else GENERIC_SIGNATURE["smooth_warp"] if only_warp else None)
     return None, None, comparison, signature
+
+
+def _append_once(trials: list[_Trial], trial: _Trial) -> None:
+    if not any(t is trial for t in trials):
+        trials.append(trial)
 
 
 def _refit_candidates(problem, layout, x, chi2_now, ranking, opts, log_n, say) -> list[_Trial]:

@@ -4,6 +4,7 @@ and a Levenberg–Marquardt solver on the small normal equations."""
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +15,8 @@ from . import noise as noise_mod
 from .terms import physical_bounds
 
 BASE_FREE = ("offset_dn", "gain_dn", "mu_per_mm", "detector_sigma_mm")
+#: Memory for the expected images a problem keeps (a Jacobian's worth at 512² fitted pixels).
+EXPECTED_CACHE_BYTES = 32 * 2**20
 
 
 @dataclass
@@ -86,9 +89,11 @@ class Problem:
         self.noise: noise_mod.NoiseModel | None = None
         self.wsqrt = np.ones_like(y)
         self.n = int(mask.sum())
-        # the expected image at the last point evaluated: the Jacobian at the point the
-        # optimiser just evaluated needs it again (for the gain column)
-        self._last_expected: tuple | None = None
+        # Expected images of the last points evaluated, most recent last. The Jacobian at the
+        # point the optimiser just evaluated needs it again (for the gain column), and a refit
+        # from the same point after the noise model changed (new weights, same model) needs the
+        # images of its whole Jacobian again.
+        self._expected_cache: OrderedDict = OrderedDict()
 
     def set_noise(self, noise: noise_mod.NoiseModel, expected: np.ndarray, offset: float) -> None:
         self.noise = noise
@@ -108,12 +113,18 @@ class Problem:
         return u[m]
 
     def expected(self, layout: Layout, x: np.ndarray) -> np.ndarray:
-        """The model's expected image at ``x`` (read-only; kept for the next call at the same ``x``)."""
-        key = x.tobytes()
-        if self._last_expected is not None and self._last_expected[0] is layout and self._last_expected[1] == key:
-            return self._last_expected[2]
-        mu = self.model.expected(*layout.unpack(x))
-        self._last_expected = (layout, key, mu)
+        """The model's expected image at ``x`` (read-only: kept for later calls at the same point)."""
+        base, terms = layout.unpack(x)
+        key = (tuple(base.items()), tuple((t.name, tuple(p.items())) for t, p in terms))
+        cache = self._expected_cache
+        if key in cache:
+            cache.move_to_end(key)
+            return cache[key]
+        mu = self.model.expected(base, terms)
+        mu.flags.writeable = False
+        cache[key] = mu
+        while len(cache) > max(1, EXPECTED_CACHE_BYTES // mu.nbytes):
+            cache.popitem(last=False)
         return mu
 
     def whitened(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
