@@ -107,10 +107,10 @@ class Problem:
     def whiten_field(self, field_: np.ndarray, sel: np.ndarray | None = None) -> np.ndarray:
         """Prewhiten a weighted field (zero outside the mask) and take the selected pixels."""
         m = self.mask if sel is None else sel
-        u = np.where(self.mask, field_, 0.0)
-        if self.noise is not None and not self.noise.is_white:
-            u = self.noise.whiten(u)
-        return u[m]
+        if self.noise is None or self.noise.is_white:
+            # selections lie inside the mask: the zeroing outside it does not change them
+            return field_[m]
+        return self.noise.whiten(np.where(self.mask, field_, 0.0))[m]
 
     def expected(self, layout: Layout, x: np.ndarray) -> np.ndarray:
         """The model's expected image at ``x`` (read-only: kept for later calls at the same point)."""

@@ -42,7 +42,11 @@ def _apply_affine(state: ChainState, p: dict) -> None:
     ys = g.y * g.half_size_px
     dx = scale * xs - rot * ys
     dy = scale * ys + rot * xs
-    state.light = state.light - (gx * dx + gy * dy)
+    # light - (gx dx + gy dy), in place in the new arrays (this runs at every model evaluation)
+    np.multiply(gx, dx, out=dx)
+    np.multiply(gy, dy, out=dy)
+    np.add(dx, dy, out=dx)
+    state.light = np.subtract(state.light, dx, out=dx)
 
 
 REGISTRATION_SHIFT = PhysicsTerm(

@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, ParameterError
-from .physics_terms import LIBRARY, ChainGrid, ChainState, PhysicsTerm, _gauss_transfer, \
+from .physics_terms import LIBRARY, ChainGrid, ChainState, PhysicsTerm, _gauss_transfer, image_gradient, \
     _inverse_spectrum, _padded_spectrum, get_term, validate_params
 
 # Mass attenuation coefficients mu/rho (cm^2/g, with coherent scattering) at 20..100 keV, from the
@@ -418,10 +418,13 @@ class ChainModel:
 
         def gradient():
             if "gradient" not in memo:
-                memo["gradient"] = tuple(np.gradient(light))
+                memo["gradient"] = image_gradient(light)
             return memo["gradient"]
 
-        state.light = light.copy()
+        # terms replace the light, never modify it: the cached light itself starts the optics
+        # (read-only, so a term that wrote into it would fail instead of corrupting the cache)
+        light.flags.writeable = False
+        state.light = light
         state.cached_light_gradient = (state.light, gradient)
         for stage in ("optics", "camera"):
             for term, params in by_stage.get(stage, []):
