@@ -243,3 +243,54 @@ def test_banding_is_reported_only_when_the_found_terms_leave_it():
     # and nothing else: no column banding, and the rows removed cleanly (the noise model is
     # re-estimated without them), so no smooth light, radial or localised structure
     assert len(result.signatures) == 1 and result.signatures[0].startswith("row banding"), result.signatures
+
+
+def _base_fit(scene, recording):
+    from napari_dslrxr.core.diagnosis import mismatch
+
+    opts = DiagnosisOptions()
+    y = np.asarray(recording, dtype=np.float64)
+    setup = mismatch._prepare(y, scene.thickness_mm, scene.grid(), scene.base_params(), opts)
+    problem, layout, x, chi2, jac = mismatch._fit_base(setup, scene.base_params(), opts)
+    return setup, problem, mismatch._Fit(layout, x, chi2, jac)
+
+
+def test_banding_offsets_follow_the_lines_not_a_smooth_mismatch():
+    # per-row offsets (15 DN, a quarter of the open-field noise sigma) on top of a strong heel:
+    # the subtracted offsets come from every pixel of the line (over the flat pixels alone the
+    # heel's mean jumps where the object's edges enter a line: 2.7× the error without a heel)
+    from scipy import ndimage
+
+    from napari_dslrxr.core.diagnosis import mismatch
+
+    scene = make_scene(128)
+    rows = np.random.default_rng(7).normal(0.0, 15.0, (128, 1))
+    true_dn = rows[:, 0] - ndimage.gaussian_filter1d(rows[:, 0], 8.0, mode="reflect")
+    errors = []
+    for effects in ({}, {"heel_effect": {"h1": 0.05}}):
+        recording, _ = simulate_recording(scene, effects=effects, seed=3)
+        setup, problem, fit = _base_fit(scene, (recording + rows).astype(np.float32))
+        y_in = problem.y
+        y, found = mismatch._banding(setup, problem, fit)
+        assert problem.y is y_in and "row" in [f[0] for f in found]
+        errors.append(float(np.sqrt(np.mean(((y_in - y).mean(axis=1) - true_dn) ** 2))))
+    # the error without a heel is the pixel noise of a row mean (about 5 DN)
+    assert errors[0] < 7.0, errors
+    assert errors[1] < 1.6 * errors[0], errors
+
+
+def test_banding_test_restores_the_recording_when_it_fails(monkeypatch):
+    from napari_dslrxr.core.diagnosis import mismatch
+
+    scene = make_scene(64)
+    recording, _ = simulate_recording(scene, seed=5)
+    setup, problem, fit = _base_fit(scene, recording)
+    y_in = problem.y
+
+    def failing(*_args, **_kwargs):
+        raise MemoryError("whitening failed")
+
+    monkeypatch.setattr(problem, "whitened", failing)
+    with pytest.raises(MemoryError):
+        mismatch._banding(setup, problem, fit)
+    assert problem.y is y_in
