@@ -62,6 +62,37 @@ def test_stray_light_from_a_corner_is_unexplained_not_heel(scene):
     assert result.unexplained and any("additive light" in s for s in result.signatures), result.message
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("twin_worse_by", [0.5, 2.0])
+def test_a_smooth_field_beats_its_additive_twin_only_by_the_acceptance_threshold(scene, monkeypatch,
+                                                                                  twin_worse_by):
+    # the corner glow of the test above, where the heel is refitted as additive light; the
+    # twin's χ² is set above the heel's by a fraction of the acceptance threshold: within the
+    # threshold the heel may not be credited (a χ² difference alone would have named it), beyond
+    # it the heel is named, flagged ambiguous with additive light
+    from napari_dslrxr.core.diagnosis import acceptance
+
+    threshold = DiagnosisOptions().accept_delta_bic
+    real_twin = acceptance._additive_twin_trial
+
+    def twin_worse(problem, layout, x, chi2_now, winner, opts, log_n):
+        twin = real_twin(problem, layout, x, chi2_now, winner, opts, log_n)
+        twin.chi2 = winner.chi2 + twin_worse_by * threshold
+        return twin
+
+    monkeypatch.setattr(acceptance, "_additive_twin_trial", twin_worse)
+    recording, _ = simulate_recording(scene, seed=41)
+    g = scene.grid()
+    glow_dn = 15.0 * np.exp(-((g.x - 0.9) ** 2 + (g.y + 0.7) ** 2) / (2 * 0.8**2))
+    result = diagnose_scene(scene, recording + glow_dn.astype(np.float32), DiagnosisOptions(max_terms=1))
+    if twin_worse_by < 1.0:
+        assert result.added == [], result.message
+        assert any("additive light" in s for s in result.signatures), result.message
+    else:
+        assert [a.effect for a in result.added] == ["heel_effect"], result.message
+        assert result.added[0].ambiguous and "additive light" in result.added[0].separating
+
+
 def _spot_field(shape, centres, sigma_px):
     rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
     return sum(np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * sigma_px**2)) for r, c in centres)

@@ -274,9 +274,13 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
         if like_smooth_light:
             twin = _additive_twin_trial(problem, layout, x, chi2_now, winner, opts, log_n)
             comparison.append({**twin.summary(), "generic": True})
-            if twin.chi2 <= winner.chi2:
-                say(f"{winner.term.name}: its field added to the light fits as well as multiplying it "
-                    f"(χ² {twin.chi2:.1f} against {winner.chi2:.1f}) — additive light, not accepted")
+            # the twin has the winner's parameters, so its ΔBIC against the winner is the χ²
+            # difference; like any term against the model without it, the multiplying field is
+            # credited only if it gains more than the acceptance threshold over the adding one
+            if twin.chi2 - winner.chi2 <= opts.accept_delta_bic:
+                say(f"{winner.term.name}: its field added to the light fits about as well as multiplying "
+                    f"it (χ² {twin.chi2:.1f} against {winner.chi2:.1f}, ΔBIC ≤ {opts.accept_delta_bic:g}) "
+                    f"— additive light, not accepted")
                 only_smooth_light += 1
                 _append_once(rejecting, twin)
                 continue
