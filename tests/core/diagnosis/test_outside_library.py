@@ -130,3 +130,38 @@ def test_spot_test_ignores_the_frame_border_where_prewhitening_is_inexact():
     z = rng.standard_normal((256, 256))
     z[:, 0] *= 4.0
     assert _spot_test(z, np.ones(z.shape, bool))[0] > 1e-3 / N_TESTS
+
+
+@pytest.mark.parametrize("kind", ["smooth", "banding"])
+def test_a_smooth_trend_across_columns_is_not_called_banding(kind):
+    # stray light or a ghost leaves a smooth ramp in the column means; the read-out's banding
+    # is offsets from one column to the next: both fail the column test, one is banding
+    rng = np.random.default_rng(11)
+    shape = (256, 256)
+    mask = np.ones(shape, bool)
+    columns = np.arange(shape[1])
+    if kind == "smooth":
+        per_column = 0.3 * np.sin(np.pi * columns / shape[1] - 0.5)
+    else:
+        per_column = 0.15 * rng.choice([-1.0, 1.0], shape[1])
+    z = rng.standard_normal(shape) + per_column[None, :]
+    zero = np.zeros(shape)
+    out = structure_tests(z, mask, float(np.sum(z**2)), float(z.size), zero + 1000.0, zero, zero, 32, 1)
+    assert "columns" in out["failed"], out["failed"]
+    text = next(s for s in out["signatures"] if "column" in s)
+    if kind == "smooth":
+        assert "smooth variation across the columns" in text and "banding" not in text.replace(
+            "no line-to-line banding", ""), text
+    else:
+        assert text.startswith("column banding"), text
+
+
+def test_line_to_line_part_is_uniform_under_the_null():
+    from napari_dslrxr.core.diagnosis.structure import _line_to_line_p
+
+    rng = np.random.default_rng(12)
+    shape = (128, 96)
+    cols = np.broadcast_to(np.arange(shape[1])[None, :], shape).ravel().astype(float)
+    ps = np.array([_line_to_line_p(cols, rng.standard_normal(shape).ravel(), shape[1]) for _ in range(400)])
+    # a χ²(B - K) statistic: p uniform, so about 10 % below 0.1 and 50 % below 0.5
+    assert 0.06 < np.mean(ps < 0.1) < 0.14 and 0.44 < np.mean(ps < 0.5) < 0.56

@@ -9,7 +9,9 @@ and locations — the diagnosis never calls a residual "consistent with noise" w
 test          statistic                                                signature
 ============  =======================================================  =====================
 global        ``(χ²/n - 1) / se`` (se includes the noise estimate)  excess variance
-rows/columns  ``Σ_b (Σz/√n)_b² ~ χ²(B)`` per row / column              banding
+rows/columns  ``Σ_b (Σz/√n)_b² ~ χ²(B)`` per row / column              banding, or a smooth
+                                                                       variation when the
+                                                                       line-to-line part passes
 radius        same, 32 radial bins                                     radial
 intensity     same, 48 quantile bins of the expected intensity         intensity ripple
 edge          same, signed distance to edges (±30 px)                  edge-distance
@@ -49,6 +51,37 @@ def _profile_test(values: np.ndarray, z: np.ndarray, edges: np.ndarray) -> tuple
     bin_z = sums[use] / np.sqrt(counts[use])
     stat = float(np.sum(bin_z**2))
     return float(special.chdtrc(int(use.sum()), stat)), stat, float(centres[use][np.argmax(np.abs(bin_z))])
+
+
+def _line_profile(values: np.ndarray, z: np.ndarray, n_lines: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-line ``Σz/√n`` (lines with at least 10 pixels) and the lines' indices."""
+    which = values.astype(np.intp)
+    counts = np.bincount(which, minlength=n_lines).astype(float)
+    sums = np.bincount(which, weights=z, minlength=n_lines)
+    use = counts >= 10
+    return sums[use] / np.sqrt(np.maximum(counts[use], 1)), np.flatnonzero(use)
+
+
+def _line_to_line_p(values: np.ndarray, z: np.ndarray, n_lines: int, smooth_lines: int = 8) -> float:
+    """p-value of the per-line profile's part that varies from line to line.
+
+    The profile ``Σz/√n`` is white N(0, 1) per line under the model; its projection off the
+    span of the cosines slower than one cycle per ``2 * smooth_lines`` lines is χ²(B - K)
+    exactly. A smooth trend across the image (stray light, a ghost) fails the whole profile test
+    but not this one, and must not be called banding, which is offsets from line to line.
+    """
+    from scipy import special
+
+    profile, lines = _line_profile(values, z, n_lines)
+    n_used = len(profile)
+    n_smooth = max(2, n_lines // (2 * smooth_lines))
+    if n_used <= n_smooth + 2:
+        return 1.0
+    position = (lines + 0.5) / n_lines
+    basis = np.cos(np.pi * np.outer(position, np.arange(n_smooth)))
+    q, _ = np.linalg.qr(basis)
+    high = profile - q @ (q.T @ profile)
+    return float(special.chdtrc(n_used - n_smooth, float(np.sum(high**2))))
 
 
 def flagged_regions(z: np.ndarray, mask: np.ndarray, tile: int, binning: int, alpha: float = 0.01,
@@ -222,6 +255,9 @@ def structure_tests(z: np.ndarray, mask: np.ndarray, chi2: float, n_effective: f
         t = tests[name]
         text = t["signature"]
         if name in ("rows", "columns"):
+            line_values = rows[mask] if name == "rows" else cols[mask]
+            if _line_to_line_p(line_values, zm, h if name == "rows" else w) >= level:
+                text = f"smooth variation across the {name} (no line-to-line banding)"
             text += f" (strongest at {name[:-1]} {t['where']:.0f})"
         elif name == "intensity":
             text += f" (strongest at {t['where']:.0f} DN)"
