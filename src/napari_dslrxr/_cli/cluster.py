@@ -118,7 +118,8 @@ def _peak_rss_mb() -> float:
 @contextlib.contextmanager
 def _interruptions_deferred() -> Iterator[list[int]]:
     """Ctrl-C and SIGTERM received meanwhile are listed, to act on once dask has started the
-    LocalCluster (interrupted midway, dask's exit hook fails on its half-started workers)."""
+    LocalCluster's scheduler and the client is connected (interrupted midway, dask's waits
+    fail with internal errors, and its exit hook on half-started workers)."""
     received: list[int] = []
     if threading.current_thread() is not threading.main_thread():
         yield received
@@ -150,16 +151,31 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
         # the workers' statistical profiler samples their threads 100 times a second (about 1 % of
         # a core each) for a dashboard page nobody reads during a batch
         settings["distributed.worker.profile.enabled"] = False
-        with dask.config.set(settings), _interruptions_deferred() as interrupted:
-            cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                               dashboard_address=":0", silence_logs=logging.ERROR)
-        try:
-            if interrupted:
-                raise KeyboardInterrupt
-            with distributed.Client(cluster, set_as_default=False) as client:
-                yield client
-        finally:
-            cluster.close()
+        # every server (scheduler, nannies, workers) checks its event loop's health 50 times a
+        # second, only to log a warning when it lagged: with 2 workers about 5 % of a core
+        settings["distributed.admin.tick.interval"] = "1s"
+        # set while the cluster lives: its workers start in the background and read them then
+        with dask.config.set(settings):
+            with _interruptions_deferred() as interrupted:
+                # the scheduler alone (at once); the worker processes start in the background,
+                # each taking files as soon as it is up, while the command goes on
+                cluster = distributed.LocalCluster(n_workers=0, threads_per_worker=1, processes=True,
+                                                   memory_limit=1 / n_workers,  # dask's share for n workers
+                                                   dashboard_address=":0", silence_logs=logging.ERROR)
+                try:
+                    cluster.scale(n_workers)
+                    client = distributed.Client(cluster, set_as_default=False)  # meanwhile the workers start
+                except BaseException:
+                    cluster.close()
+                    raise
+            try:
+                with client:
+                    if interrupted:
+                        raise KeyboardInterrupt
+                    yield client
+                _stop_idle_workers(cluster)
+            finally:
+                cluster.close()
         return
     if not os.environ.get("DSLRXR_DEBUG"):  # a lost scheduler gets one line from us, not its tracebacks
         for name in ("distributed", *(n for n in logging.root.manager.loggerDict if n.startswith("distributed."))):
@@ -173,6 +189,34 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
     finally:
         with contextlib.suppress(Exception):
             client.close(timeout=5)
+
+
+#: Seconds a LocalCluster's worker gets to close by itself at the end of a batch before its
+#: process is killed (every file is finished and reported then: nothing else is in it), and the
+#: most to wait then for the killed processes to be reaped.
+_WORKER_CLOSE_WAIT_S = 0.1
+_WORKER_EXIT_WAIT_S = 10.0
+
+
+def _stop_idle_workers(cluster) -> None:
+    """End the worker processes of the LocalCluster ``cluster`` once its batch is finished.
+    dask's own close has each worker close its connections and its interpreter free a heap of
+    up to 2 GB before it is reaped (about 0.5 s with the cores otherwise idle); killed, they are
+    gone at once. Only for a finished batch: after an error or an interruption
+    ``cluster.close`` stops workers that may be writing, and the command cleans up after them."""
+    import asyncio
+
+    async def stop() -> None:
+        nannies = list(cluster.workers.values())
+        processes = [nanny.process for nanny in nannies if getattr(nanny, "process", None) is not None]
+        await asyncio.gather(*(nanny.close(timeout=_WORKER_CLOSE_WAIT_S, reason="dslrxr-batch-finished")
+                               for nanny in nannies), return_exceptions=True)
+        # each nanny notes its process's end (and removes its scratch folder) once it is reaped
+        stopped = [process.stopped.wait() for process in processes if hasattr(process, "stopped")]
+        await asyncio.wait_for(asyncio.gather(*stopped), _WORKER_EXIT_WAIT_S)
+
+    with contextlib.suppress(Exception):  # cluster.close() stops whatever is left
+        cluster.sync(stop)
 
 
 def _short(exc: BaseException) -> str:
@@ -238,15 +282,19 @@ def _run_tasks(todo: list[dict], scheduler: str, n_workers: int,
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-        n = len(client.scheduler_info().get("workers", {}))
-        print(f"dslrxr: {len(todo)} file(s) on {where} ({n} worker(s) now)", file=sys.stderr)
+        workers = (f"{n_workers} worker(s) starting" if scheduler == "local"
+                   else f"{len(client.scheduler_info().get('workers', {}))} worker(s) now")
+        print(f"dslrxr: {len(todo)} file(s) on {where} ({workers})", file=sys.stderr)
         link = _dashboard(client)
         print(f"dslrxr: dask dashboard: {link}" if link else
               "dslrxr: no dask dashboard (install bokeh>=3.1 for one)", file=sys.stderr)
         try:
             run_id = uuid.uuid4().hex[:8]
+            # the largest files first: the last files to start are short, so the workers finish together
+            ranks = {id(job): rank for rank, job in enumerate(sorted(todo, key=_input_bytes, reverse=True))}
             futures = [client.submit(_run_on_worker, {**job, "shared_reference": shared.folder}, pure=False,
-                                     key=f"dslrxr-run-{run_id}-{i}-{Path(job['input']).name}")
+                                     key=f"dslrxr-run-{run_id}-{i}-{Path(job['input']).name}",
+                                     priority=len(todo) - ranks[id(job)])
                        for i, job in enumerate(todo)]
             by_key = {f.key: job for f, job in zip(futures, todo, strict=True)}
             console = Console(stderr=True, highlight=False)
@@ -278,6 +326,14 @@ def _run_tasks(todo: list[dict], scheduler: str, n_workers: int,
         except (OSError, TimeoutError) as exc:  # comm errors while submitting
             raise ClusterError(f"lost the connection to {where} ({_short(exc)}): "
                                f"{_after_loss(finished, len(todo))}") from None
+
+
+def _input_bytes(job: dict) -> int:
+    """The size of a job's input file (0 when this host cannot see it): its work grows with it."""
+    try:
+        return os.stat(job["input"]).st_size
+    except OSError:
+        return 0
 
 
 def _after_loss(finished: int, total: int) -> str:
