@@ -20,7 +20,11 @@ process keeps busy). Idle core-seconds: cores x wall - CPU (``idle_core_s``, whi
 the machine inflates), and the run's own (``idle_core_s_own``: the cores left without one of its
 threads running or waiting for a core, sampled every 0.1 s; other work delays those threads but
 does not put them to sleep, so this one holds under load, but it counts dask's own threads as
-work), with its timeline (``runnable_threads_per_second``: where in the run the cores idle).
+work), with its timeline (``runnable_threads_per_second``: where in the run the cores idle), and
+each process's own (``cpu_per_second_by_process``: a worker idle at the start, waiting for the
+reference, or at the end while the other finishes). When each file was reported finished
+(``files_finished_at_s``) and the seconds from the last one to the command's end
+(``after_last_file_s``: closing the workers, the interpreter's exit).
 
 The frames are one generated phantom shifted by a few pixels per file (generating eight 24 MP
 phantoms would take longer than the benchmark). Usage:
@@ -118,6 +122,7 @@ class _ProcessSampler(threading.Thread):
         super().__init__(daemon=True)
         self.root, self.interval, self.seen, self.done = root, interval, {}, threading.Event()
         self.runnable: list[tuple[float, int]] = []  # (seconds since start, threads running or runnable)
+        self.cpu: list[tuple[float, dict[int, float]]] = []  # (seconds since start, CPU s so far per process)
         self.t0 = time.perf_counter()
 
     def run(self) -> None:
@@ -136,7 +141,9 @@ class _ProcessSampler(threading.Thread):
                     if ppid in family and pid not in family:
                         family.add(pid)
                         grew = True
-            self.runnable.append((time.perf_counter() - self.t0, sum(map(_runnable_threads, family & stats.keys()))))
+            now = time.perf_counter() - self.t0
+            self.runnable.append((now, sum(map(_runnable_threads, family & stats.keys()))))
+            self.cpu.append((now, {pid: stats[pid][1] + stats[pid][2] for pid in family & stats.keys()}))
             for pid in family & stats.keys():
                 role = self.seen.get(pid, {}).get("role") or _role(pid, self.root)
                 _, user, system, faults = stats[pid]
@@ -163,6 +170,28 @@ class _ProcessSampler(threading.Thread):
             buckets.setdefault(int(t), []).append(n)
         return " ".join(f"{sum(v) / len(v):.1f}" for _, v in sorted(buckets.items()))
 
+    def cpu_per_second(self) -> dict[str, str]:
+        """Each process's cores kept busy, averaged over each second of the run (a per-process
+        timeline: where a worker idles at the start, waiting, or at the end), keyed by role and pid;
+        '.' before a process started and after it ended."""
+        last = int(self.cpu[-1][0]) + 1 if self.cpu else 0
+        timelines = {}
+        for pid, figures in sorted(self.seen.items()):
+            if figures["role"] in ("resource tracker", "fork server", "other"):
+                continue
+            points = [(t, c[pid]) for t, c in self.cpu if pid in c]
+            cells = []
+            for second in range(last):
+                inside = [(t, c) for t, c in points if second <= t < second + 1]
+                if not inside:
+                    cells.append(".")
+                    continue
+                before = [(t, c) for t, c in points if t < second]
+                (t_start, c_start), (t_end, c_end) = before[-1] if before else inside[0], inside[-1]
+                cells.append(f"{(c_end - c_start) / (t_end - t_start):.1f}" if t_end > t_start else "0.0")
+            timelines[f"{figures['role']} {pid}"] = " ".join(cells)
+        return timelines
+
     def processes(self) -> list[dict]:
         return [{"pid": pid, **{k: round(v, 2) if isinstance(v, float) else v for k, v in fig.items()}}
                 for pid, fig in sorted(self.seen.items())]
@@ -184,7 +213,10 @@ def _run(args: list[str]) -> dict:
                             text=True)
     sampler = _ProcessSampler(proc.pid)
     sampler.start()
-    stderr = proc.stderr.read()
+    lines = []  # (seconds since start, line): when each file was reported finished
+    for line in proc.stderr:
+        lines.append((time.perf_counter() - t0, line))
+    stderr = "".join(line for _, line in lines)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     sampler.done.set()
@@ -197,7 +229,13 @@ def _run(args: list[str]) -> dict:
     by_role: dict[str, float] = {}
     for p in processes:
         by_role[p["role"]] = round(by_role.get(p["role"], 0.0) + p["user_s"] + p["system_s"], 2)
+    finished = [round(t, 2) for t, line in lines if re.match(r"\[\d+/\d+\] ", line)]
     return {"wall_s": round(wall, 2), "cpu_s": round(cpu, 1), "cores_busy_on_average": round(cpu / wall, 2),
+            # when each file was reported finished (the last two apart: the tail where one process
+            # works alone), and the seconds from the last one to the command's end (shutdown, exit)
+            "files_finished_at_s": finished,
+            "after_last_file_s": round(wall - finished[-1], 2) if finished else None,
+            "cpu_per_second_by_process": sampler.cpu_per_second(),
             # idle core-seconds: the cores' time the run did not use (cores x wall - CPU; grows with
             # other work on the machine), and what the run itself left without a runnable thread
             "idle_core_s": round((os.cpu_count() or 1) * wall - cpu, 1),
@@ -236,7 +274,7 @@ def main() -> int:
             runs[name] = _run([*common, "-o", str(tmp / name), *MODES[name]])
             runs[name]["files_per_min"] = round(60.0 * opts.frames / runs[name]["wall_s"], 2)
             runs[name]["stage_s_summed_over_files"] = _stage_seconds(tmp / name)
-            print(name, json.dumps({k: v for k, v in runs[name].items() if k != "processes"}), flush=True)
+            print(name, json.dumps({k: v for k, v in runs[name].items() if k not in ("processes",)}), flush=True)
         images = [_images(tmp / name) for name in opts.modes]
         identical = all(i == images[0] for i in images[1:])
     values = {"frames": opts.frames, "shape": [*shape, 3], "cpus": os.cpu_count(), "runs": runs,
