@@ -30,9 +30,9 @@ pytest.importorskip("distributed", reason="dask.distributed is an optional extra
 RUN_TIMEOUT_S = 180
 
 
-def _dslrxr(*args: str, timeout: float = RUN_TIMEOUT_S) -> subprocess.CompletedProcess:
+def _dslrxr(*args: str, timeout: float = RUN_TIMEOUT_S, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "napari_dslrxr.cli", *args], capture_output=True,
-                          text=True, timeout=timeout)
+                          text=True, timeout=timeout, env=None if env is None else {**os.environ, **env})
 
 
 def _write_batch(folder: Path, shape: tuple[int, int], n: int) -> tuple[list[Path], Path, Path]:
@@ -142,12 +142,17 @@ def test_local_cluster_from_the_parameter_file_matches_jobs_1_and_a_bad_file_fai
     shots, refs = small_batch["shots"], ["--flat", str(small_batch["flat"]), "--dark", str(small_batch["dark"]), "--dicom"]
     cfg = tmp_path / "p.toml"
     cfg.write_text('[batch]\nscheduler = "local"\njobs = 2\n')
+    scratch = tmp_path / "dask-scratch"  # where the workers keep their folders
     run = _dslrxr("run", *map(str, shots[:2]), str(small_batch["bad"]), *map(str, shots[2:]), *refs,
-                  "-o", str(tmp_path / "cluster"), "-c", str(cfg))
+                  "-o", str(tmp_path / "cluster"), "-c", str(cfg), env={"DASK_TEMPORARY_DIRECTORY": str(scratch)})
     assert run.returncode == 1, run.stderr
     assert "on a local dask cluster (2 worker(s)" in run.stderr
     assert "broken.tif" in run.stderr and "1 of 5 file(s) failed" in run.stderr
     assert "peak memory per worker" in run.stderr and "Traceback" not in run.stderr
+    # the finished batch's workers were stopped at once, yet quietly and completely: no line about
+    # them, and each one's folder removed as dask removes it when a worker ends
+    assert "killed" not in run.stderr and "Worker process" not in run.stderr, run.stderr
+    assert not list(scratch.rglob("worker-*")), sorted(p.name for p in scratch.rglob("*"))
     assert main(["run", *map(str, shots), *refs, "-o", str(tmp_path / "jobs1"), "--jobs", "1"]) == 0
     cluster, reference = _images(tmp_path / "cluster"), _images(tmp_path / "jobs1")
     assert len(reference) == 3 * len(shots) and cluster == reference  # TIFF, PNG and DICOM, same bytes
@@ -156,6 +161,25 @@ def test_local_cluster_from_the_parameter_file_matches_jobs_1_and_a_bad_file_fai
     assert _sidecars_without_timings(tmp_path / "cluster") == _sidecars_without_timings(tmp_path / "jobs1")
     side = json.loads((tmp_path / "cluster" / "shot0_dslrxr.tif.json").read_text())
     assert side["results"]["batch"] == {"scheduler": "local"} and "batch" not in side["parameters"]
+
+
+@pytest.mark.slow
+def test_a_local_cluster_starts_the_largest_files_first(tmp_path):
+    """One worker runs the files in the order the cluster gives them: the largest first (the
+    last files to start are then the short ones, so several workers finish together), whatever
+    the order on the command line; each output is that of --jobs 1."""
+    folder = tmp_path / "inputs"
+    folder.mkdir()
+    shapes = {"small": (120, 180), "large": (240, 360), "medium": (180, 270)}
+    shots = [write_tiff(folder / f"{name}.tif", make_dslr_radiograph(shape, seed=1).raw_rgb)
+             for name, shape in shapes.items()]
+    run = _dslrxr("run", *map(str, shots), "-o", str(tmp_path / "cluster"), "--scheduler", "local", "--jobs", "1")
+    assert run.returncode == 0, run.stderr
+    order = [Path(line.split("] ", 1)[1].split(":", 1)[0]).stem for line in run.stderr.splitlines()
+             if line.startswith("[")]
+    assert order == ["large", "medium", "small"], run.stderr
+    assert main(["run", *map(str, shots), "-o", str(tmp_path / "jobs1")]) == 0
+    assert _images(tmp_path / "cluster") == _images(tmp_path / "jobs1")
 
 
 def _psf_model(folder: Path) -> Path:

@@ -290,13 +290,14 @@ def _run_tasks(todo: list[dict], scheduler: str, n_workers: int,
               "dslrxr: no dask dashboard (install bokeh>=3.1 for one)", file=sys.stderr)
         try:
             run_id = uuid.uuid4().hex[:8]
-            # the largest files first: the last files to start are short, so the workers finish together
-            ranks = {id(job): rank for rank, job in enumerate(sorted(todo, key=_input_bytes, reverse=True))}
-            futures = [client.submit(_run_on_worker, {**job, "shared_reference": shared.folder}, pure=False,
-                                     key=f"dslrxr-run-{run_id}-{i}-{Path(job['input']).name}",
-                                     priority=len(todo) - ranks[id(job)])
-                       for i, job in enumerate(todo)]
-            by_key = {f.key: job for f, job in zip(futures, todo, strict=True)}
+            # the largest files first (submitted first: a worker already idle starts the first one it
+            # gets): the last files to start are short ones, so the workers finish together
+            order = sorted(range(len(todo)), key=lambda i: _input_bytes(todo[i]), reverse=True)
+            futures = [client.submit(_run_on_worker, {**todo[i], "shared_reference": shared.folder}, pure=False,
+                                     key=f"dslrxr-run-{run_id}-{i}-{Path(todo[i]['input']).name}",
+                                     priority=len(todo) - rank)
+                       for rank, i in enumerate(order)]
+            by_key = {f.key: todo[i] for f, i in zip(futures, order, strict=True)}
             console = Console(stderr=True, highlight=False)
             columns = (TextColumn("files"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
             # a bar on a terminal; logs and pipes get the per-file lines only
