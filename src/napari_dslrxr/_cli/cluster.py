@@ -3,16 +3,19 @@
 The per-file work is :func:`napari_dslrxr.core.files.run_file`, exactly as with ``--jobs``
 (same atomic writes and sidecars, so the outputs have the same bytes). The flat/dark reference is
 prepared once by the command, as for the process pool (:mod:`.shared_reference`): in a thread
-started before the workers; the tasks are submitted as soon as the workers are up, and their first
-files' impulse removal runs while the reference is prepared. Each worker computes the PSF kernel
-(small) once and keeps both in its ``reference_cache`` for its later files.
+started before the workers; the tasks are submitted, largest input first, as soon as the client is
+connected (the workers of ``--scheduler local`` start meanwhile), and their first files' impulse
+removal runs while the reference is prepared. Each worker computes the PSF kernel (small) once and
+keeps both in its ``reference_cache`` for its later files.
 
 The workers of ``--scheduler local`` share the cores out to their native libraries (OpenCV, BLAS:
 one thread each on a 2-core machine with 2 workers), run without dask's statistical profiler and
 get the heap settings of every process that runs files (:data:`~.file_job.HEAP_ENVIRON`, in place
 of dask's ``MALLOC_TRIM_THRESHOLD_``, under which every large temporary array of the pipeline was
-a fresh mapping: about 9 times the page faults of one process). Workers started otherwise
-(``dask worker``, dask-jobqueue) keep their own settings.
+a fresh mapping: about 9 times the page faults of one process); its servers check their event
+loops once a second, and once the batch is finished its idle workers are killed rather than
+closed step by step. Workers started otherwise (``dask worker``, dask-jobqueue) keep their own
+settings.
 
 dask reschedules the task of a worker that dies (a file is written under a temporary name and
 renamed, so a killed worker leaves no partial output); a task that kills
