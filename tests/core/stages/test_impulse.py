@@ -111,6 +111,52 @@ def test_faint_blobs_and_tracks_are_found_by_their_footprint(rng):
     assert clean.masks["grey"].mean() < 2e-4
 
 
+def test_rims_of_strong_blobs_on_ramps_are_found(rng):
+    """Gaussian blobs (sigma 0.9 px) 8-16 noise sigmas high on steep ramps: their 3-5 sigma
+    rims are found (the growth's old structure guard took the ramp for structure: 0.71-0.76
+    found), the noise pixels around them are hardly touched, and nothing far from them."""
+    h, w = 256, 256
+    yy, xx = np.mgrid[:h, :w].astype(np.float64)
+    light = 400.0 + 2400.0 * xx / w + 300.0 * np.sin(yy / 23.0)
+    excess = np.zeros((h, w))
+    for k in range(60):
+        r, c = 8 + 20 * (k // 12) + rng.uniform(0, 6), 8 + 20 * (k % 12) + rng.uniform(0, 6)
+        excess += rng.uniform(8, 16) * np.exp(-((yy - r) ** 2 + (xx - c) ** 2) / (2 * 0.9 ** 2))
+    dirty = rng.poisson(light) + excess * np.sqrt(light)
+    mask = remove_impulses(dirty.astype(np.float32)).masks["grey"]
+    rim = (excess >= 3) & (excess < 5)
+    assert mask[rim].mean() > 0.82, mask[rim].mean()
+    assert mask[excess >= 5].mean() > 0.98
+    near = ndi.binary_dilation(excess >= 0.05, iterations=1)
+    assert np.count_nonzero(mask & near & (excess < 1)) < 20
+    assert np.count_nonzero(mask & ~near) <= 3
+
+
+def test_spread_about_a_plane_ignores_a_ramp(rng):
+    """The rim guard's spread about the window's plane is the noise on a ramp, where the
+    spread about the median is the ramp's; curvature (a bump) still spreads about a plane."""
+    from napari_dslrxr.core.stages.impulse.neighbourhoods import _masked_median_at
+
+    yy, xx = np.mgrid[:64, :64].astype(np.float64)
+    excluded = np.zeros((64, 64), np.uint8)
+    excluded[31:34, 30:35] = 1  # a patch and its ring, as in the growth
+    rows, cols = np.array([32]), np.array([31])
+    for name, surface, lo, hi in (("ramp", 1000 + 40 * xx + 25 * yy, 0.7, 1.4),
+                                   ("bump", 1000 + 400 * np.exp(-((yy - 32) ** 2 + (xx - 32) ** 2) / 8.0), 3, None)):
+        spreads = []
+        for _ in range(40):
+            image = (surface + rng.normal(0, 10, surface.shape)).astype(np.float32)
+            _, plane = _masked_median_at(image, excluded, rows, cols, smallest_px=7, symmetric=True,
+                                         with_spread=True, spread_about="plane")
+            _, median = _masked_median_at(image, excluded, rows, cols, smallest_px=7, symmetric=True,
+                                          with_spread=True)
+            spreads.append((plane[0] / 10, median[0] / 10))
+        plane_sigmas, median_sigmas = np.median(spreads, axis=0)
+        assert plane_sigmas > lo, (name, plane_sigmas)
+        if hi is not None:
+            assert plane_sigmas < hi < median_sigmas, (name, plane_sigmas, median_sigmas)
+
+
 def test_gain_and_pulse_rate_estimated_within_ten_percent(rng):
     clean = smooth_scene((384, 384), low=200, high=4000)
     for gain in (0.5, 4.0):

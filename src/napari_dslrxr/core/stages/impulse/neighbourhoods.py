@@ -154,7 +154,8 @@ def _window_flat_indices(rows: np.ndarray, cols: np.ndarray, size_px: int, shape
 
 
 def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                      smallest_px: int = 3, symmetric: bool = False, with_spread: bool = False):
+                      smallest_px: int = 3, symmetric: bool = False, with_spread: bool = False,
+                      spread_about: str = "median"):
     """Median of the non-excluded pixels around each (row, col), float64.
 
     Tries windows of 3 (or ``smallest_px``), 5, 7 and 9 px and uses, per pixel, the smallest
@@ -169,7 +170,9 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
     the ramp, pixel by pixel, down the gradient.
 
     ``with_spread``: also return the spread of those pixels, (q3 - q1)/1.349 (the standard
-    deviation for Gaussian noise; larger where the window holds structure, float64).
+    deviation for Gaussian noise; larger where the window holds structure, float64), of
+    their values (``spread_about="median"``) or of their residuals to their least-squares
+    plane (``"plane"``, with ``symmetric`` only: a ramp is not structure there).
     """
     x_flat = np.ascontiguousarray(x).ravel()
     excluded_flat = np.ascontiguousarray(excluded).ravel()
@@ -178,11 +181,34 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
     for start in range(0, rows.size, _MEDIAN_CHUNK_PX):  # bounded (N, window) temporaries
         part = slice(start, start + _MEDIAN_CHUNK_PX)
         _masked_median_chunk(x_flat, x.shape, excluded_flat, rows[part], cols[part], smallest_px, symmetric,
-                             out[part], None if spread is None else spread[part])
+                             out[part], None if spread is None else spread[part], spread_about == "plane")
     return (out, spread) if with_spread else out
 
 
-def _masked_median_chunk(x_flat, shape, excluded_flat, rows, cols, smallest_px, symmetric, out, spread):
+def _plane_residuals(vals: np.ndarray, bad: np.ndarray, size: int) -> np.ndarray:
+    """(N, size^2) residuals of each row-major window's good values (``~bad``) to their
+    least-squares plane, sorted, the bad ones +inf (float64). The good set is
+    point-symmetric (``symmetric``), so the plane's intercept is the good values' mean and
+    its two slopes solve a 2x2 system."""
+    dr, dc = _window_offsets(size)
+    dr, dc = dr.astype(np.float64), dc.astype(np.float64)
+    good = ~bad
+    v = np.where(good, vals, 0.0).astype(np.float64)
+    mean = v.sum(axis=1) / np.maximum(good.sum(axis=1), 1)
+    srr, scc, src = good @ (dr * dr), good @ (dc * dc), good @ (dr * dc)
+    svr, svc = v @ dr, v @ dc
+    det = srr * scc - src * src
+    det = np.where(det > 1e-9, det, np.inf)  # too few pixels for a plane: a constant
+    slope_r = (svr * scc - svc * src) / det
+    slope_c = (svc * srr - svr * src) / det
+    res = vals - (mean[:, None] + slope_r[:, None] * dr + slope_c[:, None] * dc)
+    res[bad] = np.inf
+    res.sort(axis=1)
+    return res
+
+
+def _masked_median_chunk(x_flat, shape, excluded_flat, rows, cols, smallest_px, symmetric, out, spread,
+                         about_plane=False):
     """:func:`_masked_median_at` for one chunk of pixels, written into ``out`` and ``spread``."""
     with_spread = spread is not None
     todo = np.arange(rows.size)
@@ -197,6 +223,7 @@ def _masked_median_chunk(x_flat, shape, excluded_flat, rows, cols, smallest_px, 
         if symmetric:
             bad |= bad[:, ::-1]  # row-major window: the mirror of offset k is offset n - 1 - k
         good_count = size * size - np.count_nonzero(bad, axis=1)
+        about = _plane_residuals(vals, bad, size) if with_spread and about_plane else None
         vals[bad] = np.inf
         vals.sort(axis=1)
         enough = good_count >= (min_good if size != _REPLACEMENT_WINDOWS_PX[-1] else 1)
@@ -207,8 +234,9 @@ def _masked_median_chunk(x_flat, shape, excluded_flat, rows, cols, smallest_px, 
             hi = vals[idx, n // 2]
             out[todo[idx]] = 0.5 * (lo.astype(np.float64) + hi)
             if with_spread:
-                q1 = vals[idx, (n - 1) // 4]
-                q3 = vals[idx, (3 * (n - 1)) // 4]
+                sorted_for_spread = vals if about is None else about
+                q1 = sorted_for_spread[idx, (n - 1) // 4]
+                q3 = sorted_for_spread[idx, (3 * (n - 1)) // 4]
                 spread[todo[idx]] = IQR_TO_SIGMA * (q3.astype(np.float64) - q1)
         todo = todo[~enough]
 
