@@ -22,7 +22,8 @@ Sets (``--set``):
 Seeds: ``--seeds dev`` (1, 2) while developing; ``--seeds heldout`` (1001, 1002) once, at the end
 of issue 13's work; ``--seeds heldout2`` (2001, 2002) once, at the end of the footprint and rim work
 (the first held-out range had been seen by then); ``--seeds heldout3`` (3001, 3002) once, at the end
-of the strong rims' ramp-blind guard.
+of the strong rims' ramp-blind guard, and ``--seeds heldout4`` (4001, 4002) once for its final
+version (limited to gentle ramps after heldout3 had been seen).
 
 Run: ``.venv/bin/python benchmarks/eval_impulse_independent.py --set pulses --seeds dev``
 """
@@ -41,7 +42,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import impulse_pulses as gen  # noqa: E402
 from _harness import RESULTS, load_test_module  # noqa: E402
 
-SEEDS = {"dev": (1, 2), "heldout": (1001, 1002), "heldout2": (2001, 2002), "heldout3": (3001, 3002)}
+SEEDS = {"dev": (1, 2), "heldout": (1001, 1002), "heldout2": (2001, 2002), "heldout3": (3001, 3002),
+         "heldout4": (4001, 4002)}
 
 
 # --------------------------------------------------------------------------- methods
