@@ -135,3 +135,13 @@ def test_detail_gain_does_not_swing_with_brightness_when_the_range_is_wide():
         step = out[200:300, w // 2 + 1:w // 2 + 6].mean() - out[200:300, w // 2 - 6:w // 2 - 1].mean()
         gains.append(step / 0.01)
     assert min(gains) > 2.0 and max(gains) / min(gains) < 1.2, gains
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_non_finite_pixel_is_refused_not_spread_over_the_output(bad):
+    from napari_dslrxr.core.errors import InputError
+
+    image = np.random.default_rng(0).uniform(0.2, 0.8, (128, 128)).astype(np.float32)
+    image[40, 50] = bad
+    with pytest.raises(InputError, match="NaN or infinite"):
+        enhance_contrast(image)

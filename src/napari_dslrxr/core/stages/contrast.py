@@ -56,6 +56,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..errors import InputError
 from ..param_fields import validate_fields
 from ..robust import robust_sigma as _robust_sigma
 
@@ -300,9 +301,18 @@ def enhance_contrast(image: np.ndarray, params: ContrastParams | None = None,
     ndarray, float32, (H, W)
         Enhanced image in the same units (identity when disabled or detail_contrast = 0
         and all gains, ``coarse_edge_gain`` included, are 1).
+
+    Raises
+    ------
+    InputError
+        When the image holds NaN or infinite values.
     """
     params = params or ContrastParams()
     x = np.asarray(image, np.float32)
+    # one NaN would spread through every pyramid band into the whole output (the sum is NaN or
+    # infinite exactly when a value is not finite, and costs one pass)
+    if not np.isfinite(np.sum(x, dtype=np.float64)):
+        raise InputError("image", "contains NaN or infinite values; the contrast stage needs finite values")
     if not params.enabled:
         return x.copy()
     levels = params.levels or auto_levels(x.shape)
