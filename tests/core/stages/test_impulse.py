@@ -539,6 +539,26 @@ def test_cfa_mesh_inside_a_radiograph_is_not_touched_hits_around_it_are_found():
         assert np.count_nonzero(result.masks[name] & ~ndi.binary_dilation(truth[p])) <= 3, name
 
 
+@pytest.mark.parametrize("period_px, angle_deg, period2_px, angle2_deg, peak_counts", [
+    (3.44, 134.1, 2.50, 194.1, 340.0), (3.25, 125.0, 2.88, 215.0, 530.0)])
+def test_cfa_planes_of_a_dim_frame_filled_with_a_mesh_are_not_touched(period_px, angle_deg, period2_px,
+                                                                      angle2_deg, peak_counts):
+    """A dim tinted frame filled with a fine mesh (60 % modulation), as raw CFA planes with
+    Poisson and read noise: the red and blue planes hold the mesh aliased at a few noise
+    sigmas, their noise fit came out 4-10 times too wide (under the limit that shrinks it
+    on demosaiced frames) with a pulse rate of 0.14-0.17, and 10-31 % (first mesh) and
+    0.25-1.2 % (second) of the frame's pixels were flagged."""
+    rng = np.random.default_rng(20261125)
+    pattern = (grating((256, 256), period_px, angle_deg, rng.uniform(0, 6.3))
+               * grating((256, 256), period2_px, angle2_deg, rng.uniform(0, 6.3)))
+    expected = (peak_counts * pattern / pattern.max())[..., None] * np.array([0.35, 1.0, 0.15])
+    scene = rng.poisson(expected) + rng.normal(0.0, 3.0, expected.shape)
+    planes = np.stack([scene[0::2, 0::2, 0], scene[0::2, 1::2, 1], scene[1::2, 0::2, 1],
+                       scene[1::2, 1::2, 2]]).astype(np.float32)
+    flagged = remove_impulses_cfa(planes).any_mask().mean()
+    assert flagged <= 0.002, flagged
+
+
 def test_cfa_zingers_in_a_dng_found_before_demosaicing(tmp_path, rng):
     from napari_dslrxr.core.stages.impulse import cfa_mask_to_mosaic, demosaic_cleaned_raw
     from napari_dslrxr.core.io import read_image

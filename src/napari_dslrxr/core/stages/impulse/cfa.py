@@ -6,7 +6,7 @@ import numpy as np
 
 from ...errors import InputError
 from .detection import _clean_channel
-from .noise_model import _gain
+from .noise_model import _RAW_INFLATION_LIMIT, _gain
 from .params import _FLOAT, _POLARITY_SIGN, ImpulseParams, ImpulseResult, _to_dtype
 
 
@@ -42,7 +42,8 @@ def remove_impulses_cfa(planes: np.ndarray, params: ImpulseParams | None = None)
         cleaned, mask, model = _clean_channel(plane.astype(_FLOAT), passes=params.passes_grey,
                                               params=params, photon_counting=True,
                                               polarity=_POLARITY_SIGN[params.spots],
-                                              faint_pulses=False, texture_sides=True)
+                                              faint_pulses=False, texture_sides=True,
+                                              inflation_limit=_RAW_INFLATION_LIMIT)
         if mask.any():
             out[i][mask] = _to_dtype(cleaned[mask].astype(np.float64), arr.dtype)
         masks[name] = mask

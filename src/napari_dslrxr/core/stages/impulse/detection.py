@@ -22,7 +22,7 @@ from .neighbourhoods import (
     _window_offsets,
 )
 from ...progress import Steps
-from .noise_model import _fit_mixture, _NoiseModel, _Predictor, _shrink_to_prediction
+from .noise_model import _INFLATION_LIMIT, _fit_mixture, _NoiseModel, _Predictor, _shrink_to_prediction
 from .params import _FLOAT, MEDIAN_RESIDUAL_VARIANCE_FACTOR, ImpulseParams
 
 #: Candidates for the exact test are pixels whose residual to the cheap centre-including
@@ -168,7 +168,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
                    value_range: float | None = None, residual_weight: np.ndarray | None = None,
                    in_place: bool = False, fit_region: np.ndarray | None = None,
                    steps: Steps | None = None, faint_pulses: bool = True,
-                   channels: np.ndarray | None = None, texture_sides: bool = False):
+                   channels: np.ndarray | None = None, texture_sides: bool = False,
+                   inflation_limit: float = _INFLATION_LIMIT):
     """Detect and replace pulses in one float32 channel (``in_place``: in ``x`` itself).
 
     ``fit_region`` (bool, optional): the noise model is fitted on these pixels only (and
@@ -191,6 +192,10 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     ``texture_sides`` (raw CFA planes): a seed is also texture when one side of its
     annulus is (:func:`_textured_side`): a pattern's border, which a dim plane holds aliased
     at a few noise sigmas.
+
+    ``inflation_limit``: how many times too wide (in variance) the fitted noise may be, by
+    the texture predictor's residual, before it is shrunk (:func:`_shrink_to_prediction`;
+    raw CFA planes, whose noise is independent between pixels, take a tighter limit).
 
     ``channels`` (V of the colour path): the (H, W, 3) image ``x`` is the maximum of; the
     noise model is widened to the tail of that maximum (:func:`_match_channel_tail`).
@@ -234,7 +239,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     # must then also stand out from the texture's own prediction.
     residual_factor = MEDIAN_RESIDUAL_VARIANCE_FACTOR[params.window_px]
     predictor = None if circular else _shrink_to_prediction(model, x, pick, m_fit, residual_factor,
-                                                            residual_weight)
+                                                            residual_weight, inflation_limit)
     if polarity < 0:
         model.polarity, model.pulse_density = -1, 1.0 / value_range
     if channels is not None and photon_counting:

@@ -75,6 +75,22 @@ class _NoiseModel:
         return pulse
 
 
+#: Bounds of the fitted pulse rate.
+_MIN_RATE, _MAX_RATE = 1e-7, 0.5
+
+
+def _responsibilities(model: _NoiseModel, d: np.ndarray, d2: np.ndarray, s2: np.ndarray) -> np.ndarray:
+    """Pulse responsibilities r = P u / (P u + (1 - P) N) of residuals ``d`` (squares ``d2``,
+    Gaussian variances ``s2``) under ``model``'s rate, density and polarity."""
+    log_gauss = -0.5 * d2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
+    pulse_log = math.log(model.pulse_rate * model.pulse_density)
+    if model.polarity:
+        pulse_log = np.where(d * model.polarity > 0, pulse_log, -np.inf)
+    # via the log-odds for stability
+    log_odds = pulse_log - (math.log(1.0 - model.pulse_rate) + log_gauss)
+    return 0.5 * (1.0 + np.tanh(0.5 * np.clip(log_odds, -60, 60)))
+
+
 def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, polarity: int,
                  value_range: float, iterations: int) -> _NoiseModel:
     """Fit a, b and P by EM on residuals ``d`` and medians ``m`` (1-D float64 subsample)."""
@@ -94,14 +110,8 @@ def _fit_mixture(d: np.ndarray, m: np.ndarray, *, photon_counting: bool, polarit
     d2 = d * d
     for _ in range(iterations):
         s2 = model.variance(m)
-        log_gauss = -0.5 * d2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
-        pulse_log = math.log(model.pulse_rate * density)
-        if polarity:
-            pulse_log = np.where(d * polarity > 0, pulse_log, -np.inf)
-        # responsibilities r = P u / (P u + (1 - P) N), via the log-odds for stability
-        log_odds = pulse_log - (math.log(1.0 - model.pulse_rate) + log_gauss)
-        resp = 0.5 * (1.0 + np.tanh(0.5 * np.clip(log_odds, -60, 60)))
-        new_rate = float(np.clip(resp.mean(), 1e-7, 0.5))
+        resp = _responsibilities(model, d, d2, s2)
+        new_rate = float(np.clip(resp.mean(), _MIN_RATE, _MAX_RATE))
         weight = 1.0 - resp
         if photon_counting:
             # Weighted least squares of d^2 on (m, 1) with weights (1 - r)/s^4
@@ -183,6 +193,15 @@ def _count_variance(values: np.ndarray, model: "_NoiseModel | None") -> np.ndarr
 #: noise correlated between neighbours (demosaicing) could make the prediction up to a few
 #: times better than the truth, so the margin is wide.
 _INFLATION_LIMIT = 10.0
+#: The same limit on raw CFA planes, whose noise is independent between pixels (no
+#: demosaicing), so that a right fit is near 1 there (measured: 0.97-1.4 on the planes of
+#: pulse frames, 1.0-1.9 on radiographs holding a texture patch). Frames filled with a mesh
+#: or a line pattern give 2-3000 (dim planes, the mesh aliased: 2-10); at 10, a mesh with
+#: its red and blue planes at 9.6 and 4.0 kept the inflated fit and had a third of its
+#: pixels flagged.
+_RAW_INFLATION_LIMIT = 3.0
+#: EM iterations of the pulse rate refitted after a shrink (converges in a few).
+_RATE_REFIT_ITERATIONS = 50
 #: Half-width (px) of the neighbourhood of the linear predictor (5x5 minus the centre: 24
 #: weights; a mesh of two crossing gratings is a sum of at most 9 complex exponentials,
 #: each of which the predictor must reproduce).
@@ -241,7 +260,8 @@ class _Predictor:
 
 
 def _shrink_to_prediction(model: _NoiseModel, x: np.ndarray, pick: np.ndarray, level: np.ndarray,
-                          residual_factor: float, weight: np.ndarray | None = None) -> "_Predictor | None":
+                          residual_factor: float, weight: np.ndarray | None = None,
+                          limit: float = _INFLATION_LIMIT) -> "_Predictor | None":
     """Shrink a noise model fitted on texture to the noise the prediction residual shows.
 
     The model is fitted on residuals to a median, which fine periodic texture (2-5 px)
@@ -250,7 +270,7 @@ def _shrink_to_prediction(model: _NoiseModel, x: np.ndarray, pick: np.ndarray, l
     (everything a pulse) and lifts the texture guard's noise floor above the texture. The
     residual of a linear predictor (:class:`_Predictor`, fitted on ``pick``) is free of
     such texture. Where the model's variance (per pixel: ``model.variance /
-    residual_factor``) is more than :data:`_INFLATION_LIMIT` times what that residual
+    residual_factor``) is more than ``limit`` (:data:`_INFLATION_LIMIT`) times what that residual
     supports (robustly, so pulses do not count), ``a``, ``b`` and the floor are scaled
     down to it. ``level``: the detection median of each pixel of ``pick``
     (photon-counting variance); ``weight``: the channel's residual weight
@@ -264,9 +284,21 @@ def _shrink_to_prediction(model: _NoiseModel, x: np.ndarray, pick: np.ndarray, l
         residual = residual * weight.ravel()[pick[at]]
     pixel_variance = model.variance(level[at]) / residual_factor
     scale = robust_sigma(residual / np.sqrt(pixel_variance * predictor.noise_gain), center=0.0) ** 2
-    if not (0.0 < scale < 1.0 / _INFLATION_LIMIT):
+    if not (0.0 < scale < 1.0 / limit):
         return None
     model.a *= scale
     model.b *= scale
     model.var_floor *= scale
+    # The pulse rate was fitted on the texture too (its peaks beyond the inflated Gaussian:
+    # rates of 0.1-0.26 on frames filled with a mesh, which lower the posterior test's
+    # threshold to about 2 sigmas); refitted, with the shrunk variance held, on the prediction
+    # residual at the median residual's scale (as :func:`detection._unpredicted` tests it).
+    d = residual * math.sqrt(residual_factor / predictor.noise_gain)
+    d2, s2 = d * d, model.variance(level[at])
+    for _ in range(_RATE_REFIT_ITERATIONS):
+        rate = float(np.clip(_responsibilities(model, d, d2, s2).mean(), _MIN_RATE, _MAX_RATE))
+        converged = abs(rate - model.pulse_rate) <= 1e-3 * model.pulse_rate
+        model.pulse_rate = rate
+        if converged:
+            break
     return predictor
