@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from napari_dslrxr.core.diagnosis import noise
-from napari_dslrxr.core.diagnosis.fitting import Layout, Problem
+from napari_dslrxr.core.diagnosis.fitting import Layout, Problem, tall_product
 from napari_dslrxr.core.simulation.physics_terms import image_gradient
 from napari_dslrxr.core.simulation.simulator import ChainModel
 
@@ -64,3 +64,15 @@ def test_problem_keeps_read_only_expected_images_equal_to_fresh_evaluations():
     fresh = ChainModel(scene.thickness_mm, grid)
     assert np.array_equal(first, fresh.expected(*layout.unpack(x)))
     assert np.array_equal(other, fresh.expected(*layout.unpack(x2)))
+
+
+@pytest.mark.parametrize("rows,inner,cols", [(512 * 512, 14, 2), (20001, 3, 5), (7, 4, 1)])
+def test_tall_product_is_matmul_to_the_bit(rows, inner, cols):
+    rng = np.random.default_rng(rows)
+    tall = np.linalg.qr(rng.normal(size=(rows, inner)))[0]  # C-ordered like the projections' bases
+    small = rng.normal(size=(inner, cols))
+    out = tall_product(tall, small)
+    assert out.shape == (rows, cols) and np.array_equal(out, tall @ small)
+    # and a block boundary is not skipped or repeated: a product that would notice it
+    assert np.array_equal(tall_product(np.arange(rows, dtype=float)[:, None], np.ones((1, 1)))[:, 0],
+                          np.arange(rows, dtype=float))

@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..simulation.physics_terms import ChainGrid, PhysicsTerm, get_term
-from .fitting import Layout, Problem, covariance, orthonormal
+from .fitting import Layout, Problem, covariance, orthonormal, tall_product
 from .result import AddedTerm, DiagnosisOptions
 from .terms import GENERIC_SIGNATURE, SMOOTH_ADDITIVE, SMOOTH_WARP, additive_twin, physical_bounds, probe_params
 
@@ -45,7 +45,7 @@ def rank(problem: Problem, layout: Layout, x: np.ndarray, jac0: np.ndarray, z: n
         best = None
         for gp in term.grid_points():
             cols = _candidate_columns(problem, layout, x, term, gp)
-            perp = cols - q0 @ (q0.T @ cols)
+            perp = cols - tall_product(q0, q0.T @ cols)
             # S = gᵀ G⁺ g with G = B⊥ᵀB⊥, g = B⊥ᵀz (small d×d problem; directions whose
             # projected norm is below 1e-4 of the raw column norm are not identifiable)
             gram = perp.T @ perp
