@@ -327,3 +327,34 @@ def test_a_screen_running_off_a_frame_edge_keeps_everything_up_to_that_edge(rng,
         # nor the soft rim, even where it meets the frame's edge: there the flat-field division of
         # little light by little light lifts it to any level, which takes the display window
         assert not (region.mask & (illumination < 0.5)).any()
+
+
+
+def test_of_two_accepted_screen_candidates_the_one_whose_surround_the_flat_saw_lit_loses(rng, monkeypatch):
+    """Dense anatomy along a screen's edge, as dark as the room, puts the brighter candidate's
+    side across the screen; the wedge beyond it is under 1 % of the surround (0.9 % on a corpus
+    chest), so both candidates pass on evidence, and the screen is only a few per cent larger
+    (not the 10 % that tells a real area from the blurred rim). The flat saw the wedge lit: the
+    candidate whose surround it saw dark is the screen (the other blanked 1.4 % of the chest)."""
+    from napari_dslrxr.core.stages import screen as screen_stage
+
+    h, w = 180, 270
+    corners = np.array([[58.0, 26.0], [184.0, 10.0], [194.0, 138.0], [84.0, 152.0]])
+    cut = np.array([[58.0, 26.0], [184.0, 10.0], [194.0, 138.0], [80.0, 136.0]])
+    screen = polygon_mask((h, w), corners)
+    frame = np.where(screen, 500.0, 3.0).astype(np.float32) + rng.normal(0, 3.0, (h, w)).astype(np.float32)
+    flat_light = screen.astype(np.float32) + 0.004
+    candidates = iter([(cut, []), (corners, [])])
+    monkeypatch.setattr(screen_stage, "_candidate_corners", lambda *args: next(candidates))
+
+    def evidence(small, noise, quad, params, flat_lit=None, frame_cuts=()):
+        # both pass on evidence; only the cut one leaves lit flat in its surround
+        lit = 0.0088 if np.array_equal(quad, cut) else 0.0
+        return {"open_sides": [], "open_side_index": [], "border_coverage": 0.8, "border_contrast_sigma": 20.0,
+                "bright_surround": 0.0, "flat_lit_surround": lit, "accepted": True}
+
+    monkeypatch.setattr(screen_stage, "screen_evidence", evidence)
+    region = detect_screen(frame / flat_light, illumination=flat_light, params=RegionParams(shrink_fraction=0.0))
+    assert region.detected and region.evidence["flat_lit_surround"] == 0.0, region.evidence
+    inner = cv2.erode(screen.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert not (inner & ~region.mask).any()

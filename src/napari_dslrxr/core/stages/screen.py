@@ -465,12 +465,22 @@ def _best_candidate(small: np.ndarray, scaled: np.ndarray, noise: np.ndarray,
         area = cv2.contourArea(order_corners(corners).astype(np.float32))
         if first is None or (evidence.get("field_edge") and not first[1].get("field_edge")):
             first = (corners, evidence)  # a field's edge is the better account of a refusal
-        # the lower threshold wins only when it adds a real area (not just the blurred rim)
-        if evidence["accepted"] and (best is None or area > 1.1 * best[2]):
+        # the lower threshold wins when it adds a real area (not just the blurred rim), or when
+        # the flat saw less of its surround lit and no side the frame cut closes: lit surround
+        # beside an accepted candidate is exposed screen beyond a side the fit put across it
+        # (dense anatomy at the screen's edge as dark as the room), which blanks that anatomy
+        if evidence["accepted"] and (best is None or area > 1.1 * best[2]
+                                     or (_flat_lit_share(evidence) < _flat_lit_share(best[1])
+                                         and set(best[1]["open_sides"]) <= set(evidence["open_sides"]))):
             best = (corners, evidence, area)
     if first is None:
         return None
     return (best[0], best[1]) if best is not None else first
+
+
+def _flat_lit_share(evidence: dict) -> float:
+    """Share of a candidate's surround the flat frame saw lit (0 without a flat)."""
+    return evidence.get("flat_lit_surround") or 0.0
 
 
 def _screen_polygon(corners: np.ndarray, evidence: dict, params: RegionParams, shape: tuple[int, int]) -> np.ndarray:
