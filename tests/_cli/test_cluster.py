@@ -411,3 +411,31 @@ def test_a_long_lived_worker_never_serves_a_reference_from_a_replaced_flat(tmp_p
     second = (tmp_path / "second" / "shot_dslrxr.tif").read_bytes()
     assert second == (tmp_path / "fresh" / "shot_dslrxr.tif").read_bytes()
     assert second != (tmp_path / "first" / "shot_dslrxr.tif").read_bytes()
+
+
+@pytest.mark.slow
+def test_a_local_worker_that_never_starts_is_one_line_not_a_hang(tmp_path, small_batch, capsys, monkeypatch):
+    import distributed
+
+    from napari_dslrxr._cli import cluster as cli_cluster
+
+    monkeypatch.setattr(cli_cluster, "WORKER_START_TIMEOUT_S", 3.0)
+    monkeypatch.setattr(distributed.LocalCluster, "scale", lambda self, n=0, **kwargs: None)  # no worker comes up
+    shot = str(small_batch["shots"][0])
+    started = time.monotonic()
+    assert main(["run", shot, "-o", str(tmp_path / "o"), "--scheduler", "local"]) == 2
+    assert time.monotonic() - started < 60
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("dslrxr: error: no local dask worker started within 3 s"), err
+    assert not list((tmp_path / "o").glob("*_dslrxr*"))
+
+
+def test_the_dask_internals_of_the_fast_stop_are_still_there():
+    # _stop_idle_workers waits on Nanny.process.stopped; a dask without them would lose the fast
+    # stop silently (the fallback is dask's own close), so this fails instead
+    import inspect
+
+    from distributed.nanny import Nanny, WorkerProcess
+
+    assert "self.process = " in inspect.getsource(Nanny)
+    assert "self.stopped = asyncio.Event()" in inspect.getsource(WorkerProcess)

@@ -72,7 +72,9 @@ def test_real_cr_anatomy_is_not_burned_out(shared_data, name):
     # measured chest 2.52 -> 3.01, leg 2.97 -> 3.40 (3.55 before its thinnest tissue was lifted off
     # black beside the beam: the toe gives the skin line display range); the value-of-interest
     # window alone gives the leg +13 % (it leaves out the direct exposure), the chest -3 %
-    assert gcf_out > 1.1 * gcf_in, (gcf_in, gcf_out)
+    # the issue's +10 % for the leg, whose toe costs it; the chest (no direct exposure, no toe)
+    # keeps the stricter +15 % it met before
+    assert gcf_out > (1.15 if name == "RG1_UNCR" else 1.1) * gcf_in, (gcf_in, gcf_out)
     if name == "RG1_UNCR":
         assert global_contrast_factor(out) > global_contrast_factor(np.clip(value, 0, 1) * field)
 

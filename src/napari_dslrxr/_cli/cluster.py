@@ -194,6 +194,9 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
             client.close(timeout=5)
 
 
+#: Seconds a LocalCluster's first worker may take to start before the run stops with one line.
+WORKER_START_TIMEOUT_S = 120.0
+
 #: Seconds a LocalCluster's worker gets to close by itself at the end of a batch before its
 #: process is killed (every file is finished and reported then: nothing else is in it), and the
 #: most to wait then for the killed processes to be reaped.
@@ -206,7 +209,11 @@ def _stop_idle_workers(cluster) -> None:
     dask's own close has each worker close its connections and its interpreter free a heap of
     up to 2 GB before it is reaped (about 0.5 s with the cores otherwise idle); killed, they are
     gone at once. Only for a finished batch: after an error or an interruption
-    ``cluster.close`` stops workers that may be writing, and the command cleans up after them."""
+    ``cluster.close`` stops workers that may be writing, and the command cleans up after them.
+
+    ``Nanny.process`` and its ``stopped`` event are dask internals (tested in
+    tests/_cli/test_cluster.py, so an upgrade that drops them fails there instead of silently
+    losing the fast stop); whatever fails here, ``cluster.close`` stops what is left."""
     import asyncio
 
     async def stop() -> None:
@@ -301,6 +308,14 @@ def _run_tasks(todo: list[dict], scheduler: str, n_workers: int,
                                      priority=len(todo) - rank)
                        for rank, i in enumerate(order)]
             by_key = {f.key: todo[i] for f, i in zip(futures, order, strict=True)}
+            if scheduler == "local":
+                # the workers start in the background, and dask only logs one that cannot start
+                # (an import error, no free port): without a worker the batch would wait forever
+                try:
+                    client.wait_for_workers(1, timeout=WORKER_START_TIMEOUT_S)
+                except TimeoutError:
+                    raise ClusterError(f"no local dask worker started within {WORKER_START_TIMEOUT_S:.0f} s "
+                                       "(set DSLRXR_DEBUG=1 to see dask's log)") from None
             console = Console(stderr=True, highlight=False)
             columns = (TextColumn("files"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
             # a bar on a terminal; logs and pipes get the per-file lines only

@@ -305,16 +305,16 @@ def enhance_contrast(image: np.ndarray, params: ContrastParams | None = None,
     Raises
     ------
     InputError
-        When the image holds NaN or infinite values.
+        When the image holds NaN or infinite values (and the stage is enabled).
     """
     params = params or ContrastParams()
     x = np.asarray(image, np.float32)
+    if not params.enabled:
+        return x.copy()
     # one NaN would spread through every pyramid band into the whole output (the sum is NaN or
     # infinite exactly when a value is not finite, and costs one pass)
     if not np.isfinite(np.sum(x, dtype=np.float64)):
         raise InputError("image", "contains NaN or infinite values; the contrast stage needs finite values")
-    if not params.enabled:
-        return x.copy()
     levels = params.levels or auto_levels(x.shape)
     power = 1.0 - 0.7 * float(params.detail_contrast)
     noise_level = 0.0

@@ -66,11 +66,13 @@ class DynamicRangeParams:
         the curve's range they are compressed (never expanded) onto it, see
         :func:`fit_to_display` (0 to 100; 100 = never adjust).
     anatomy_floor : float
-        Display grey of the thinnest tissue beside direct exposure (0 to 0.3; 0 = off): where
-        the frame has direct exposure (the beam beside the body, kept black), the anatomy's
-        darkest values are lifted to about this grey so the skin line and thin soft tissue
-        stand out from the black background (:func:`lift_anatomy_foot`). Frames without
-        direct exposure are unchanged.
+        Display grey of the darkest anatomy in a frame with direct exposure (0 to 0.3; 0 =
+        off): where the frame has direct exposure (the beam beside the body, kept black), the
+        anatomy's darkest values are lifted to about this grey so the skin line and thin soft
+        tissue stand out from the black background (:func:`lift_anatomy_foot`). The lift
+        covers the whole body, so dark enclosed anatomy (lungs) shown below
+        ``FOOT_TOE_SPAN * anatomy_floor`` is lifted too, with its contrast there reduced by up
+        to half. Frames without direct exposure are unchanged.
     """
 
     enabled: bool = field(default=True, metadata={"help": "compress large-area (low-frequency) variation"})
@@ -94,8 +96,8 @@ class DynamicRangeParams:
                 "compressed onto the display curve when more would clip (100 = never adjust)",
         "unit": "%", "min": 0.0, "max": 100.0})
     anatomy_floor: float = field(default=0.12, metadata={
-        "help": "display grey of the thinnest tissue beside direct exposure (the beam beside the body stays "
-                "black), so the skin line shows; 0 = off",
+        "help": "display grey of the darkest anatomy when the frame has direct exposure (the beam beside the "
+                "body stays black), so the skin line shows; dark lungs are lifted too; 0 = off",
         "unit": "display fraction", "min": 0.0, "max": 0.3})
 
     def __post_init__(self) -> None:
