@@ -126,3 +126,24 @@ def test_collections_held_twice_resume_at_the_last_release_and_a_host_collector_
         assert not gc.isenabled()
     finally:
         gc.enable()
+
+
+def test_a_result_still_showing_after_the_hold_limit_gives_the_collector_back(qtbot, wait_for_worker, monkeypatch):
+    """The collector's hold has a fail-safe: a display whose steps outlast it (or never end, the
+    viewer closed midway) does not leave garbage collection off for the rest of the process."""
+    import gc
+
+    from napari_dslrxr._widgets import _jobs
+
+    monkeypatch.setattr(_jobs, "COLLECTOR_HOLD_MAX_MS", 50)
+    seen: list[bool] = []
+
+    def show(_value):
+        for _ in range(40):  # about 40 turns of SHOW_STEP_DELAY_MS each
+            seen.append(gc.isenabled())
+            yield
+
+    worker = run_in_worker(lambda: 1, desc="long", on_returned=show)
+    wait_for_worker(worker)
+    assert not seen[0] and seen[-1], "the collector stayed off past the hold's limit"
+    assert gc.isenabled()

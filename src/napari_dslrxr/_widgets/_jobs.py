@@ -287,6 +287,8 @@ def hold_repaints(widget: Any) -> Callable[[], None]:
 
 
 _COLLECTOR_HOLDS = [0]
+#: The longest a result's display holds the garbage collector (its steps take about 1 s).
+COLLECTOR_HOLD_MAX_MS = 10_000
 
 
 def hold_collections() -> Callable[[], None]:
@@ -411,6 +413,8 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
     showing: dict[str, Any] = {"steps": None, "finish_after": False}
 
     def _returned(result: Any) -> None:
+        from qtpy.QtCore import QTimer
+
         worker.dslrxr_returned_at = time.perf_counter()  # the result reaches the GUI thread
         if worker.dslrxr_cancelled:
             return
@@ -421,7 +425,11 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
             shown = on_returned(result)
             if isinstance(shown, Iterator):
                 showing["steps"] = shown
-                showing["release_collector"] = hold_collections()
+                release_collector = hold_collections()
+                showing["release_collector"] = release_collector
+                # a fail-safe: if the steps never finish (the viewer closed midway), collections
+                # resume anyway rather than stay off for the rest of the process
+                QTimer.singleShot(COLLECTOR_HOLD_MAX_MS, release_collector)
                 _next_step()
 
     def _next_step() -> None:
