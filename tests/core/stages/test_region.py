@@ -358,3 +358,18 @@ def test_of_two_accepted_screen_candidates_the_one_whose_surround_the_flat_saw_l
     assert region.detected and region.evidence["flat_lit_surround"] == 0.0, region.evidence
     inner = cv2.erode(screen.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert not (inner & ~region.mask).any()
+
+
+def test_a_dark_defect_of_the_flat_inside_a_frame_cut_screen_is_not_taken_for_its_rim(rng):
+    """The rule that keeps a frame-cut screen's region away from the flat's soft rim must not cut
+    holes in the middle: dust or a marker that darkens the flat by 55 % inside the screen is
+    anatomy's ground, not rim."""
+    h, w = 180, 270
+    corners = np.array([[-30.0, -12.0], [180.0, -6.0], [196.0, 140.0], [14.0, 158.0]])
+    frame, truth = _quad_frame(rng, (h, w), corners)
+    rows, cols = np.mgrid[0:h, 0:w]
+    dust = 1.0 - 0.55 * np.exp(-((rows - 80) ** 2 + (cols - 100) ** 2) / (2 * 4.0**2))
+    illumination = (cv2.GaussianBlur(truth.astype(np.float32), (0, 0), 1.0) + 0.004) * dust
+    region = detect_screen(frame * dust / illumination, illumination=illumination)
+    assert region.detected, region.evidence
+    assert region.mask[70:91, 90:111].all(), (~region.mask[70:91, 90:111]).sum()
