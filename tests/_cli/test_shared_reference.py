@@ -131,6 +131,8 @@ def test_a_worker_stops_waiting_when_the_command_is_gone(tmp_path):
     prepare their own instead of waiting."""
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     folder = tmp_path / f"{shared_ref.SHARED_REFERENCE_PREFIX}{socket.gethostname()}-{int(dead.stdout)}-0123abcd"
+    # the command's pending mark is there (it died mid-preparation): only its death ends the wait
+    shared_ref._pending_path(folder).touch()
     started = time.monotonic()
     assert shared_ref.worker_reference(str(folder))(("any",)) is None
     assert time.monotonic() - started < 5
