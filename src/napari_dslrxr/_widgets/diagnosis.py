@@ -42,6 +42,7 @@ BINNED_Z_LIMITS = (-3.0, 3.0)
 BINNED_BLOCK = 4
 #: Points layer whose text labels the before and after maps on the canvas.
 MAP_LABELS = "residual map labels"
+MISMATCH_REGIONS = "mismatch regions"
 
 
 def summary_text(result: DiagnosisResult) -> str:
@@ -235,7 +236,7 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
             yield
         rectangles = [np.array([[r0, c0], [r0, c1], [r1, c1], [r1, c0]], float) - 0.5
                       for r0, c0, r1, c1 in result.regions]
-        if rectangles and "mismatch regions" not in self._viewer.layers:
+        if rectangles and MISMATCH_REGIONS not in self._viewer.layers:
             yield NEXT_STEP_ADDS_LAYER
         new = self._show_regions(rectangles, layer)
         yield
@@ -267,7 +268,7 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
     def _show_regions(self, rectangles: list[np.ndarray], layer):
         from napari.layers import Shapes
 
-        name, geometry = "mismatch regions", same_geometry(layer)
+        name, geometry = MISMATCH_REGIONS, same_geometry(layer)
         existing = self._viewer.layers[name] if name in self._viewer.layers else None
         new = None
         if not isinstance(existing, Shapes):

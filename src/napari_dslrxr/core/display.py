@@ -21,7 +21,7 @@ import numpy as np
 from .params import PipelineParams
 from .stages.collimation import detect_collimation
 from .stages.contrast import enhance_contrast
-from .stages.dynamic_range import (CLIPPED_HIGH, CLIPPED_LOW, FOOT_TOE_SPAN, add_toe, fit_to_display,
+from .stages.dynamic_range import (CLIPPED_HIGH, CLIPPED_LOW, add_toe, fit_to_display, foot_toe,
                                    reduce_dynamic_range, sigmoid_lut)
 from .stages.region import direct_exposure_masks, voi_window
 
@@ -108,8 +108,8 @@ def apply_anatomy_foot(display: np.ndarray, step: int, weight: np.ndarray, floor
     at ``(r / step, c / step)``, bilinear), so no full-size weight is held; only the columns
     with anatomy are touched.
     """
-    top = FOOT_TOE_SPAN * float(floor)
-    scaled = weight * np.float32(floor / top ** 2)
+    top, scale = foot_toe(floor)
+    scaled = weight * scale
     h, w = display.shape
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)

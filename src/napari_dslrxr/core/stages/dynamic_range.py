@@ -350,8 +350,14 @@ def lift_anatomy_foot(display: np.ndarray, weight: np.ndarray, floor: float) -> 
     """
     if floor <= 0:
         return
+    top, scale = foot_toe(floor)
+    add_toe(display, np.asarray(weight, np.float32) * scale, top)
+
+
+def foot_toe(floor: float) -> tuple[float, np.float32]:
+    """The toe's end ``t`` (display units) and the weight's scale ``floor / t^2`` for :func:`add_toe`."""
     top = FOOT_TOE_SPAN * float(floor)
-    add_toe(display, np.asarray(weight, np.float32) * np.float32(floor / top ** 2), top)
+    return top, np.float32(floor / top ** 2)
 
 
 def add_toe(display: np.ndarray, scaled_weight: np.ndarray, top: float) -> None:

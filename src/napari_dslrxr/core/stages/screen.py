@@ -300,12 +300,6 @@ def flat_exposed_area(light: np.ndarray) -> np.ndarray | None:
     return filled.astype(bool) if 0.02 <= share <= 0.95 else None
 
 
-def _fill_holes(mask: np.ndarray) -> np.ndarray:
-    from scipy import ndimage
-
-    return ndimage.binary_fill_holes(mask)
-
-
 def _away_from_rim(flat_level: np.ndarray, radius_px: int = 7, share: float = 0.6) -> np.ndarray:
     """Pixels the flat frame lights at least ``share`` of the brightest light within
     ``radius_px`` (both lightly smoothed against its noise): the screen's soft rim, where the
@@ -412,7 +406,9 @@ def detect_screen(image: np.ndarray, params: RegionParams | None = None, *,
         # only what the open-beam flat saw lit, away from its rim
         # (holes filled: a dark defect of the flat inside the screen, dust or a marker, is not a
         # rim, which always joins the room or the frame's edge)
-        lit = _fill_holes(exposed[0] & _away_from_rim(flat_level))
+        from scipy import ndimage
+
+        lit = ndimage.binary_fill_holes(exposed[0] & _away_from_rim(flat_level))
         mask &= cv2.resize(lit.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
     return Region(mask, poly, detected=True, evidence=evidence)
 

@@ -39,16 +39,12 @@ class _NoiseModel:
 
     def log_odds_constant(self, posterior_threshold: float, rate: float) -> float:
         """2 ln((1-P)/(P u)) + 2 ln(t/(1-t)) - ln(2 pi): the threshold is s^2 (this - ln s^2)."""
-        if np.ndim(rate):  # one prior per pixel
-            return (2.0 * np.log((1.0 - rate) / (rate * self.pulse_density))
-                    + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
-                    - math.log(2.0 * math.pi))
         return (2.0 * math.log((1.0 - rate) / (rate * self.pulse_density))
                 + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
                 - math.log(2.0 * math.pi))
 
     def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float,
-                 prior: "float | np.ndarray | None" = None, min_variance: np.ndarray | None = None,
+                 prior: float | None = None, min_variance: np.ndarray | None = None,
                  min_contrast: float | None = None) -> np.ndarray:
         """Posterior pulse probability > threshold, vectorised (float32 inputs allowed).
 
