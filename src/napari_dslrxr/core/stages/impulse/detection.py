@@ -278,6 +278,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         steps.advance()
         pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch,
                                fast_residual, near_scratch, check=steps.check, strong_rims=faint_pulses)
+        if photon_counting and faint_pulses and residual_weight is None and not circular:
+            pulses = _without_broad_patches(x, pulses, model, scratch)
         if pulses.size == 0:
             break
         rows, cols = np.divmod(pulses, w)
@@ -898,6 +900,117 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
     for marked in near_marked:
         near_flat[marked] = 0
     return pulses
+
+
+#: A grown patch is broad structure, not a pulse, when it is compact (its coordinates' smaller
+#: spread at least this, px: a 3x3 square spreads 0.82 px, a track less) ...
+_BROAD_MIN_SPREAD_PX = 0.9
+#: ... and the ring just outside it stands at least this many noise sigmas (per pixel) ...
+_BROAD_RING_SIGMAS = 2.0
+#: ... and at least this share of the patch's own border excess above the background 2-3 px out:
+#: a pulse ends within its footprint (81 % of dev pulse patches' rings under 0.1 of the border's
+#: excess), a blob blurred by the screen goes on down its flanks (0.2-0.6).
+_BROAD_RING_SHARE = 0.25
+
+
+def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel,
+                           scratch: np.ndarray) -> np.ndarray:
+    """``pulses`` (flat indices) without the patches whose excess goes on beyond them.
+
+    The growth climbs down a smooth blob (anatomy blurred by the screen, 6-8 px across and
+    10-16 noise sigmas high, whose top the exact test seeds) ring by ring: every ring of it
+    stands above the window with the patch left out. What tells it from a pulse is outside
+    the patch: a pulse's excess ends within its footprint, a blob's goes on. So a compact
+    patch whose outer ring (the pixels touching it) still stands out from the background 2-3
+    px out, by :data:`_BROAD_RING_SIGMAS` noise sigmas and :data:`_BROAD_RING_SHARE` of the
+    patch's own border excess, is dropped. Other pulses are left out of the ring and the
+    background. ``scratch`` (uint8, zero) is used and left zero.
+    """
+    import cv2
+
+    min_area = 9  # below it no patch spreads 0.9 px along both axes
+    if pulses.size < min_area:
+        return pulses
+    h, w = x.shape
+    marks = scratch.ravel()
+    marks[pulses] = 1
+    count, labels = cv2.connectedComponents(scratch, connectivity=8, ltype=cv2.CV_32S)
+    marks[pulses] = 0
+    label = labels.ravel()[pulses]
+    del labels
+    area = np.bincount(label, minlength=count)
+    big = area >= min_area
+    big[0] = False
+    if not big.any():
+        return pulses
+    member = big[label]
+    sub, sub_label = pulses[member], label[member]
+    rows, cols = np.divmod(sub, w)
+    n = area[sub_label].astype(np.float64)
+    mean_r = np.bincount(sub_label, rows, count)[sub_label] / n
+    mean_c = np.bincount(sub_label, cols, count)[sub_label] / n
+    dr, dc = rows - mean_r, cols - mean_c
+    n_l = np.maximum(area, 1).astype(np.float64)
+    crr = np.bincount(sub_label, dr * dr, count) / n_l
+    ccc = np.bincount(sub_label, dc * dc, count) / n_l
+    crc = np.bincount(sub_label, dr * dc, count) / n_l
+    minor_var = 0.5 * (crr + ccc) - np.sqrt(0.25 * (crr - ccc) ** 2 + crc ** 2)
+    compact = big & (minor_var >= _BROAD_MIN_SPREAD_PX ** 2)
+    if not compact.any():
+        return pulses
+    keep_px = compact[sub_label]
+    sub, sub_label, rows, cols = sub[keep_px], sub_label[keep_px], rows[keep_px], cols[keep_px]
+    pulse_set = np.sort(pulses)
+    size = h * w
+    values = x.ravel()
+
+    def around(reach_px: int) -> tuple[np.ndarray, np.ndarray]:
+        # (label, pixel) pairs within reach of each compact patch, other pulses left out
+        ddr, ddc = _window_offsets(2 * reach_px + 1)
+        near = _flat_indices(rows, cols, ddr, ddc, (h, w))
+        pairs = np.unique(sub_label[:, None].astype(np.int64) * size + near)
+        pix = pairs % size
+        outside = ~_in_sorted(pix, pulse_set)
+        return pairs[outside] // size, pix[outside]
+
+    def per_label_stat(lab: np.ndarray, val: np.ndarray, median: bool) -> np.ndarray:
+        out = np.full(count, np.nan)
+        if lab.size == 0:
+            return out
+        if not median:
+            cnt = np.bincount(lab, minlength=count)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                return np.bincount(lab, val, count) / cnt
+        order = np.lexsort((val, lab))
+        lab_s, val_s = lab[order], val[order]
+        starts = np.flatnonzero(np.r_[True, lab_s[1:] != lab_s[:-1]])
+        ends = np.r_[starts[1:], lab_s.size]
+        lo, hi = (starts + ends - 1) // 2, (starts + ends) // 2
+        out[lab_s[starts]] = 0.5 * (val_s[lo] + val_s[hi])
+        return out
+
+    ring_lab, ring_pix = around(1)
+    far_lab, far_pix = around(3)
+    in_ring = _in_sorted(far_lab * size + far_pix, ring_lab * size + ring_pix)  # both sorted pairs
+    far_lab, far_pix = far_lab[~in_ring], far_pix[~in_ring]
+    background = per_label_stat(far_lab, values[far_pix].astype(np.float64), median=True)
+    ring_mean = per_label_stat(ring_lab, values[ring_pix].astype(np.float64), median=False)
+    # the patch's border: its pixels with a neighbour outside every pulse
+    d8r = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+    d8c = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
+    neighbours = _flat_indices(rows, cols, d8r, d8c, (h, w))
+    border = (~_in_sorted(neighbours.ravel(), pulse_set)).reshape(neighbours.shape).any(axis=1)
+    border_mean = per_label_stat(sub_label[border], values[sub[border]].astype(np.float64), median=False)
+    with np.errstate(invalid="ignore"):
+        sign = np.sign(border_mean - background)
+        ring_excess = sign * (ring_mean - background)
+        border_excess = sign * (border_mean - background)
+        sigma = np.sqrt(np.maximum(model.variance(np.nan_to_num(background)), 0.0))
+        broad = compact & (ring_excess >= _BROAD_RING_SIGMAS * sigma) & (ring_excess >= _BROAD_RING_SHARE * border_excess)
+    broad &= np.isfinite(ring_excess) & np.isfinite(border_excess) & (border_excess > 0)
+    if not broad.any():
+        return pulses
+    return pulses[~broad[label]]
 
 
 #: Reach of a grown pixel's change of marks on the growth windows: its own mark and its
