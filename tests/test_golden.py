@@ -21,6 +21,13 @@ timings and library versions by design.
 The expected hashes live in ``tests/golden_hashes.json``. After an intended change of results,
 regenerate them with ``DSLRXR_REGEN_GOLDEN=1 python -m pytest tests/test_golden.py`` and say in
 the commit why the outputs changed.
+
+The file also records the environment the hashes were made in (:func:`environment`: the
+numerical libraries' versions and the CPU's SIMD features numpy dispatches to). Floating-point
+results may differ in the last bit with either (a new OpenBLAS kernel, an AVX-512 sort), so
+outside that environment a changed hash cannot tell a code change from a library change: the test
+is then skipped with the differences named, instead of failing on code that did not change. The
+test environment is pinned (``requirements/test-constraints.txt``), so CI keeps one environment.
 """
 
 from __future__ import annotations
@@ -53,6 +60,42 @@ SOURCE_TO_OBJECT_MM = 1150.0
 SOURCE_TO_DETECTOR_MM = 1200.0
 
 SCENE = PHANTOM_SCENE_TOML
+
+
+#: Libraries whose releases can move a floating-point result of the pipeline.
+NUMERICAL_LIBRARIES = ("numpy", "scipy", "scikit-image", "opencv-contrib-python-headless", "tifffile",
+                       "pydicom", "matplotlib", "rawpy")
+
+
+def environment() -> dict:
+    """The numerical libraries' versions and the CPU features numpy dispatches to."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    libraries = {}
+    for name in NUMERICAL_LIBRARIES:
+        try:
+            libraries[name] = version(name)
+        except PackageNotFoundError:
+            libraries[name] = None
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as features
+    except ImportError:  # numpy < 2
+        from numpy.core._multiarray_umath import __cpu_features__ as features
+    return {"libraries": libraries, "cpu_features": sorted(k for k, on in features.items() if on)}
+
+
+def environment_differences(recorded: dict | None, current: dict) -> list[str]:
+    """What differs between the environment the hashes were made in and this one."""
+    if not recorded:
+        return ["the hashes do not record their environment"]
+    out = [f"{name} {recorded['libraries'].get(name)} -> {current['libraries'].get(name)}"
+           for name in sorted(set(recorded["libraries"]) | set(current["libraries"]))
+           if recorded["libraries"].get(name) != current["libraries"].get(name)]
+    gone = sorted(set(recorded["cpu_features"]) - set(current["cpu_features"]))
+    new = sorted(set(current["cpu_features"]) - set(recorded["cpu_features"]))
+    if gone or new:
+        out.append(f"CPU features {'-' + ','.join(gone) if gone else ''}{' +' + ','.join(new) if new else ''}")
+    return out
 
 
 def _dslrxr(*args: str | Path) -> None:
@@ -122,12 +165,29 @@ def produced(tmp_path_factory) -> dict[str, str]:
 @pytest.mark.slow
 def test_outputs_match_the_golden_hashes(produced):
     if REGENERATE:
-        GOLDEN_FILE.write_text(json.dumps(produced, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+        record = {"hashes": produced, "environment": environment()}
+        GOLDEN_FILE.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n", encoding="utf-8")
         pytest.skip(f"regenerated {GOLDEN_FILE.name}")
-    expected = json.loads(GOLDEN_FILE.read_text(encoding="utf-8"))
+    golden = json.loads(GOLDEN_FILE.read_text(encoding="utf-8"))
+    expected = golden["hashes"]
     assert set(produced) == set(expected)
     changed = sorted(name for name in expected if produced[name] != expected[name])
+    if changed:
+        differences = environment_differences(golden.get("environment"), environment())
+        if differences:
+            pytest.skip(f"outputs {changed} differ from hashes made in another environment "
+                        f"({'; '.join(differences)}): regenerate here after checking the change")
     assert not changed, f"outputs changed: {changed} (regenerate with DSLRXR_REGEN_GOLDEN=1 if intended)"
+
+
+def test_environment_differences_name_what_changed():
+    here = environment()
+    assert environment_differences(here, here) == []
+    older = {"libraries": {**here["libraries"], "numpy": "1.0.0"}, "cpu_features": here["cpu_features"] + ["AVX512X"]}
+    differences = environment_differences(older, here)
+    assert differences[0] == f"numpy 1.0.0 -> {here['libraries']['numpy']}"
+    assert differences[1] == "CPU features -AVX512X"
+    assert environment_differences(None, here) == ["the hashes do not record their environment"]
 
 
 def test_volatile_fields_are_the_only_ones_dropped(tmp_path):
