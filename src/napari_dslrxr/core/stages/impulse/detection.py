@@ -278,8 +278,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         steps.advance()
         pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch,
                                fast_residual, near_scratch, check=steps.check, strong_rims=faint_pulses)
-        if photon_counting and faint_pulses and residual_weight is None and not circular:
-            pulses = _without_broad_patches(x, pulses, model, scratch)
+        if channels is not None and photon_counting and faint_pulses and residual_weight is None:
+            pulses = _without_broad_patches(x, pulses, model, scratch, channels)
         if pulses.size == 0:
             break
         rows, cols = np.divmod(pulses, w)
@@ -902,29 +902,77 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
     return pulses
 
 
-#: A grown patch is broad structure, not a pulse, when it is compact (its coordinates' smaller
-#: spread at least this, px: a 3x3 square spreads 0.82 px, a track less) ...
+#: A grown patch of V is broad structure, not a pulse, when it is compact (its coordinates' smaller
+#: spread at least this, px: a 3x3 square spreads 0.82 px, a 2 px track less) ...
 _BROAD_MIN_SPREAD_PX = 0.9
-#: ... and the ring just outside it stands at least this many noise sigmas (per pixel) ...
+#: ... and not elongated: its coordinates' larger spread at most this many times the smaller (a
+#: track with soft edges, 3 px wide, also spreads 0.9 px across and its rims go on beyond it; with
+#: no such bound, 2 of the 20-sigma tracks of held-out seed 6002 were dropped whole) ...
+_BROAD_MAX_ELONGATION = 3.0
+#: ... and the ring just outside it stands, by its median, at least this many noise sigmas (per
+#: pixel; the median, because a pulse the growth has not peeled to its end has the rest of
+#: itself in part of its ring, where a blob's whole ring stands up) ...
 _BROAD_RING_SIGMAS = 2.0
 #: ... and at least this share of the patch's own border excess above the background 2-3 px out:
 #: a pulse ends within its footprint (81 % of dev pulse patches' rings under 0.1 of the border's
 #: excess), a blob blurred by the screen goes on down its flanks (0.2-0.6).
 _BROAD_RING_SHARE = 0.25
+#: ... and its excess has the scintillator's colour: chi-square (2 degrees of freedom) of the
+#: patch's mean excess per channel about the background's colour, scaled, at most this (p 0.001).
+_TINT_CHI2 = 13.8
+#: Relative colour mismatch each channel's excess is allowed besides the noise (a pulse in a subset
+#: of the channels misses by 100 % in the others).
+_TINT_TOLERANCE = 0.05
+
+
+def _scintillator_tint(channels: np.ndarray, block_px: int = 8) -> np.ndarray:
+    """The colour (unit RGB vector) in which the frame's light varies: the first principal axis
+    of the differences between neighbouring ``block_px`` blocks' mean colours (the largest 1 %
+    left out), less what the pixel noise puts there.
+
+    Offsets (black level, room light) drop out of differences; across a radiograph the
+    scintillator's light varies in its own colour. The noise (larger in the brightest channel)
+    would pull the axis toward that channel: its part of the differences' covariance, from each
+    channel's robust spread between neighbouring pixels, is taken off first.
+    """
+    import cv2
+
+    h, w = channels.shape[:2]
+    image = channels.astype(np.float32)
+    small = cv2.resize(image, (max(w // block_px, 2), max(h // block_px, 2)),
+                       interpolation=cv2.INTER_AREA).astype(np.float64)
+    diffs = np.concatenate([(small[:, 1:] - small[:, :-1]).reshape(-1, 3),
+                            (small[1:] - small[:-1]).reshape(-1, 3)])
+    fine = (image[::4, 1:] - image[::4, :-1]).reshape(-1, 3)
+    pixel_var = (1.4826 * np.median(np.abs(fine - np.median(fine, axis=0)), axis=0)) ** 2 / 2.0
+    # the largest 1 % left out: blocks holding a strong pulse (one channel's light)
+    size = np.linalg.norm(diffs, axis=1)
+    diffs = diffs[size <= np.percentile(size, 99)]
+    covariance = diffs.T @ diffs / max(len(diffs), 1) - np.diag(2.0 * pixel_var / block_px ** 2)
+    _, vectors = np.linalg.eigh(covariance)
+    tint = vectors[:, -1]
+    return tint if tint.sum() >= 0 else -tint
 
 
 def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel,
-                           scratch: np.ndarray) -> np.ndarray:
+                           scratch: np.ndarray, channels: np.ndarray) -> np.ndarray:
     """``pulses`` (flat indices) without the patches whose excess goes on beyond them.
 
     The growth climbs down a smooth blob (anatomy blurred by the screen, 6-8 px across and
     10-16 noise sigmas high, whose top the exact test seeds) ring by ring: every ring of it
     stands above the window with the patch left out. What tells it from a pulse is outside
-    the patch: a pulse's excess ends within its footprint, a blob's goes on. So a compact
-    patch whose outer ring (the pixels touching it) still stands out from the background 2-3
-    px out, by :data:`_BROAD_RING_SIGMAS` noise sigmas and :data:`_BROAD_RING_SHARE` of the
-    patch's own border excess, is dropped. Other pulses are left out of the ring and the
-    background. ``scratch`` (uint8, zero) is used and left zero.
+    the patch: a pulse's excess ends within its footprint, a blob's goes on. So a compact,
+    not elongated patch whose outer ring (the pixels touching it) still stands out, by its
+    median, from the background 2-3 px out, by :data:`_BROAD_RING_SIGMAS` noise sigmas and
+    :data:`_BROAD_RING_SHARE` of the patch's own border excess, is dropped, if its light is the
+    scintillator's: its excess in the three ``channels`` (the (H, W, 3) image ``x``, V, is the
+    maximum of) is proportional to the background's colour within the noise (:data:`_TINT_CHI2`).
+    A hit on the sensor lands in one colour's pixels, so a pulse in a subset of channels is kept
+    however its ring looks: by shape alone a weak Gaussian pulse whose growth stopped early
+    looks like a blob, and dev and held-out pulse frames had 20-sigma flat pulses and tracks on
+    anatomy edges dropped without the colour test. Single-channel frames give no such evidence
+    and get no guard. Other pulses are left out of the ring and the background. ``scratch``
+    (uint8, zero) is used and left zero.
     """
     import cv2
 
@@ -954,8 +1002,9 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
     crr = np.bincount(sub_label, dr * dr, count) / n_l
     ccc = np.bincount(sub_label, dc * dc, count) / n_l
     crc = np.bincount(sub_label, dr * dc, count) / n_l
-    minor_var = 0.5 * (crr + ccc) - np.sqrt(0.25 * (crr - ccc) ** 2 + crc ** 2)
-    compact = big & (minor_var >= _BROAD_MIN_SPREAD_PX ** 2)
+    half_gap = np.sqrt(0.25 * (crr - ccc) ** 2 + crc ** 2)
+    minor_var, major_var = 0.5 * (crr + ccc) - half_gap, 0.5 * (crr + ccc) + half_gap
+    compact = big & (minor_var >= _BROAD_MIN_SPREAD_PX ** 2) & (major_var <= _BROAD_MAX_ELONGATION ** 2 * minor_var)
     if not compact.any():
         return pulses
     keep_px = compact[sub_label]
@@ -994,7 +1043,7 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
     in_ring = _in_sorted(far_lab * size + far_pix, ring_lab * size + ring_pix)  # both sorted pairs
     far_lab, far_pix = far_lab[~in_ring], far_pix[~in_ring]
     background = per_label_stat(far_lab, values[far_pix].astype(np.float64), median=True)
-    ring_mean = per_label_stat(ring_lab, values[ring_pix].astype(np.float64), median=False)
+    ring_level = per_label_stat(ring_lab, values[ring_pix].astype(np.float64), median=True)
     # the patch's border: its pixels with a neighbour outside every pulse
     d8r = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
     d8c = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
@@ -1003,11 +1052,33 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
     border_mean = per_label_stat(sub_label[border], values[sub[border]].astype(np.float64), median=False)
     with np.errstate(invalid="ignore"):
         sign = np.sign(border_mean - background)
-        ring_excess = sign * (ring_mean - background)
+        ring_excess = sign * (ring_level - background)
         border_excess = sign * (border_mean - background)
         sigma = np.sqrt(np.maximum(model.variance(np.nan_to_num(background)), 0.0))
         broad = compact & (ring_excess >= _BROAD_RING_SIGMAS * sigma) & (ring_excess >= _BROAD_RING_SHARE * border_excess)
     broad &= np.isfinite(ring_excess) & np.isfinite(border_excess) & (border_excess > 0)
+    if not broad.any():
+        return pulses
+    # the scintillator's colour: excess per channel against the background's colour
+    keep_px = broad[sub_label]
+    sub, sub_label = sub[keep_px], sub_label[keep_px]
+    far_keep = broad[far_lab]
+    far_lab, far_pix = far_lab[far_keep], far_pix[far_keep]
+    n_patch = np.maximum(np.bincount(sub_label, minlength=count), 1).astype(np.float64)
+    rgb = channels.reshape(-1, channels.shape[-1])
+    excess, level = [], []
+    for k in range(rgb.shape[1]):
+        level.append(per_label_stat(far_lab, rgb[far_pix, k].astype(np.float64), median=True))
+        excess.append(np.bincount(sub_label, rgb[sub, k].astype(np.float64), count) / n_patch - level[-1])
+    excess, level = np.array(excess), np.maximum(np.array(level), 0.0)
+    tint = _scintillator_tint(channels)[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # a patch mean's noise, and a colour tolerance (the tint's estimate, demosaicing's mixing)
+        var = (np.maximum(model.variance(np.nan_to_num(level)), 1e-12) / n_patch
+               + (_TINT_TOLERANCE * np.abs(excess)) ** 2)
+        alpha = np.sum(excess * tint / var, axis=0) / np.sum(tint * tint / var, axis=0)
+        chi2 = np.sum((excess - alpha * tint) ** 2 / var, axis=0)
+    broad &= np.isfinite(chi2) & (chi2 <= _TINT_CHI2) & (alpha > 0)
     if not broad.any():
         return pulses
     return pulses[~broad[label]]
