@@ -124,3 +124,26 @@ def test_contrast_widget_and_core_share_the_display_stages(frames):
     grey = frames.raw_rgb.mean(axis=2).astype(np.float32)
     _, widget_grey, _ = render(None, grey, DISPLAY, params, grey.size, True)
     np.testing.assert_array_equal(widget_grey, enhance_radiograph(grey, params))
+
+
+def test_a_blade_line_gives_back_the_field_it_cut_and_keeps_the_dense_band():
+    """A blade band is found by a straight line; where the field's real edge curves, the line
+    cuts a sliver of field. What lies beyond the line at the field's levels and joins the
+    field is given back; the dense band and a light speck inside it (not joined) are not."""
+    from napari_dslrxr.core.pipeline import _with_light_beyond_blades
+
+    h, w = 120, 160
+    yy, xx = np.mgrid[:h, :w]
+    rng = np.random.default_rng(3)
+    curve = 90 + 12 * np.sin(xx / w * np.pi)  # the field's real lower edge bulges down to 102
+    field_truth = yy < curve
+    oriented = np.where(field_truth, 1.0 + 0.3 * np.sin(xx / 9.0), 4.0) + rng.normal(0, 0.02, (h, w))
+    oriented[112:115, 40:43] = 1.0  # a light speck in the band, not joined to the field
+    line_cut = yy >= 92  # the blade's straight line
+    region = np.ones((h, w), bool)
+    kept = _with_light_beyond_blades(region & ~line_cut, region & line_cut, oriented, region & ~line_cut)
+    sliver = field_truth & line_cut
+    assert sliver.sum() > 500
+    assert kept[sliver].mean() > 0.97
+    near_field = cv2.dilate(field_truth.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert not kept[~near_field].any()  # the dense band and the speck stay out (the edge's 1-2 px aside)
