@@ -1,0 +1,27 @@
+"""Fast helpers of the impulse stage give the same sets as their direct definitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from napari_dslrxr.core.stages.impulse.detection import _NEAR_BIT, _near
+
+
+@pytest.mark.parametrize("n_others", [3, 40, 2000])  # few: neighbourhood search; many: bitmap
+def test_near_is_the_chebyshev_neighbourhood_at_borders_too(n_others):
+    rng = np.random.default_rng(n_others)
+    h, w, radius = 37, 29, 5
+    pixels = np.flatnonzero(rng.random(h * w) < 0.3)
+    others = rng.integers(0, h * w, n_others)
+    others[:2] = [0, h * w - 1]  # corners: the replicated border must not reach farther
+    flags = np.zeros(h * w, np.uint8)
+    flags[::7] = 1  # the growth's marks (0 or 1) must be left as they were
+    before = flags.copy()
+    got = _near(pixels, others, radius, (h, w), flags)
+    pr, pc = np.divmod(pixels, w)
+    orow, ocol = np.divmod(others, w)
+    dist = np.maximum(np.abs(pr[:, None] - orow[None, :]), np.abs(pc[:, None] - ocol[None, :]))
+    np.testing.assert_array_equal(got, (dist <= radius).any(axis=1))
+    np.testing.assert_array_equal(flags, before)
+    assert not (flags & _NEAR_BIT).any()
