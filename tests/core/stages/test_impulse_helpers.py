@@ -25,3 +25,27 @@ def test_near_is_the_chebyshev_neighbourhood_at_borders_too(n_others):
     np.testing.assert_array_equal(got, (dist <= radius).any(axis=1))
     np.testing.assert_array_equal(flags, before)
     assert not (flags & _NEAR_BIT).any()
+
+
+def test_hsv_planes_are_opencvs_over_several_row_blocks():
+    import cv2
+
+    from napari_dslrxr.core.stages.impulse.colour import rgb_to_hsv_counts
+
+    rgb = np.random.default_rng(1).integers(0, 4000, (999, 1234, 3)).astype(np.uint16)  # two blocks
+    hue, sat, val = rgb_to_hsv_counts(rgb)
+    ref = cv2.cvtColor(rgb.astype(np.float32), cv2.COLOR_RGB2HSV)
+    np.testing.assert_array_equal(hue, ref[..., 0] * np.float32(1.0 / 360.0))
+    np.testing.assert_array_equal(sat, ref[..., 1])
+    np.testing.assert_array_equal(val, ref[..., 2])
+
+
+def test_ring_median_of_an_interleaved_channel_is_that_of_its_copy():
+    from napari_dslrxr.core.stages.impulse.neighbourhoods import _ring_median_at
+
+    rgb = np.random.default_rng(2).integers(0, 4000, (40, 50, 3)).astype(np.uint16)
+    rows, cols = np.divmod(np.arange(0, 40 * 50, 7), 50)  # borders included
+    for c in range(3):
+        for size in (3, 5):
+            np.testing.assert_array_equal(_ring_median_at(rgb, rows, cols, size, channel=c),
+                                          _ring_median_at(np.ascontiguousarray(rgb[..., c]), rows, cols, size))

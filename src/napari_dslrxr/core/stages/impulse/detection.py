@@ -365,8 +365,10 @@ def _match_channel_tail(model: _NoiseModel, channels: np.ndarray, pick: np.ndarr
     from ...robust import robust_sigma
 
     rows, cols = np.divmod(pick, channels.shape[1])
-    residuals = [_exact_residual(channels[..., c], rows, cols, window_px, False, None)
-                 for c in range(channels.shape[2])]
+    residuals = []
+    for c in range(channels.shape[2]):
+        med = _ring_median_at(channels, rows, cols, window_px, channel=c)
+        residuals.append((channels[rows, cols, c].astype(np.float64) - med, med))
     top = np.argmax(np.stack([med for _, med in residuals]), axis=0)
     d_top = np.stack([d for d, _ in residuals])[top, np.arange(pick.size)]
     # The brighter half of the sample: a dark surround (read noise of three channels over a

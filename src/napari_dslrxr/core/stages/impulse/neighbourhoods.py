@@ -57,7 +57,7 @@ _SORT8_NETWORK = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7)
 
 
 def _ring_median_at(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int,
-                    with_spread: bool = False):
+                    with_spread: bool = False, channel: int | None = None):
     """Median of the 8 detection samples around each pixel, centre excluded (float64).
 
     The samples are those of :func:`_detection_components` without the centre: the 8 neighbours
@@ -67,13 +67,22 @@ def _ring_median_at(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: 
     ``with_spread``: also return the spread of the 8 samples, (v6 + v7 - v2 - v3) / 2 of the
     sorted values over 1.325, its expected value for 8 Gaussian samples of unit deviation
     (float64): about the noise on a smooth background, far more on edges and corners.
+
+    ``channel``: ``x`` is an (H, W, C) image and the samples are those of this channel.
     """
     step = 1 if size_px == 3 else 2
     dr = np.array([-step, -step, -step, 0, 0, step, step, step])
     dc = np.array([-step, 0, step, -step, step, -step, 0, step])
-    flat = _flat_indices(rows, cols, dr, dc, x.shape)
-    x_flat = np.ascontiguousarray(x).ravel()
-    v = [x_flat[flat[:, k]] for k in range(8)]
+    flat = _flat_indices(rows, cols, dr, dc, x.shape[:2])
+    if channel is None:
+        x_flat = np.ascontiguousarray(x).ravel()
+        v = [x_flat[flat[:, k]] for k in range(8)]
+    else:  # one channel of an interleaved image, gathered in place (a contiguous copy of the
+        # whole channel cost more than the gather for the EM sample's 250 000 pixels)
+        x_flat = np.ascontiguousarray(x).ravel()
+        flat *= x.shape[2]
+        flat += channel
+        v = [x_flat[flat[:, k]] for k in range(8)]
     for i, j in _SORT8_NETWORK:
         low = np.minimum(v[i], v[j])
         v[j] = np.maximum(v[i], v[j])
