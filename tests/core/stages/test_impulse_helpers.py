@@ -49,3 +49,16 @@ def test_ring_median_of_an_interleaved_channel_is_that_of_its_copy():
         for size in (3, 5):
             np.testing.assert_array_equal(_ring_median_at(rgb, rows, cols, size, channel=c),
                                           _ring_median_at(np.ascontiguousarray(rgb[..., c]), rows, cols, size))
+
+
+@pytest.mark.parametrize("size_px", [3, 5, 7, 9])
+def test_window_values_are_the_flat_gather_at_borders_too(size_px):
+    from napari_dslrxr.core.stages.impulse.neighbourhoods import _window_flat_indices, _window_values
+
+    x = np.random.default_rng(size_px).normal(size=(23, 31)).astype(np.float32)
+    rows, cols = np.divmod(np.arange(23 * 31), 31)
+    np.testing.assert_array_equal(_window_values(x, rows, cols, size_px),
+                                  x.ravel()[_window_flat_indices(rows, cols, size_px, x.shape)])
+    inner = (rows > 5) & (rows < 17) & (cols > 5) & (cols < 25)  # the block-copy path alone
+    np.testing.assert_array_equal(_window_values(x, rows[inner], cols[inner], size_px),
+                                  x.ravel()[_window_flat_indices(rows[inner], cols[inner], size_px, x.shape)])

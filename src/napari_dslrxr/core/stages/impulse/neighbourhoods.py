@@ -183,13 +183,13 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
     their values (``spread_about="median"``) or of their residuals to their least-squares
     plane (``"plane"``, with ``symmetric`` only: a ramp is not structure there).
     """
-    x_flat = np.ascontiguousarray(x).ravel()
-    excluded_flat = np.ascontiguousarray(excluded).ravel()
+    x = np.ascontiguousarray(x)
+    excluded = np.ascontiguousarray(excluded)
     out = np.full(rows.shape, np.nan)
     spread = np.full(rows.shape, np.nan) if with_spread else None
     for start in range(0, rows.size, _MEDIAN_CHUNK_PX):  # bounded (N, window) temporaries
         part = slice(start, start + _MEDIAN_CHUNK_PX)
-        _masked_median_chunk(x_flat, x.shape, excluded_flat, rows[part], cols[part], smallest_px, symmetric,
+        _masked_median_chunk(x, excluded, rows[part], cols[part], smallest_px, symmetric,
                              out[part], None if spread is None else spread[part], spread_about == "plane")
     return (out, spread) if with_spread else out
 
@@ -216,9 +216,35 @@ def _plane_residuals(vals: np.ndarray, bad: np.ndarray, size: int) -> np.ndarray
     return res
 
 
-def _masked_median_chunk(x_flat, shape, excluded_flat, rows, cols, smallest_px, symmetric, out, spread,
-                         about_plane=False):
-    """:func:`_masked_median_at` for one chunk of pixels, written into ``out`` and ``spread``."""
+#: Windows from this side on are copied as blocks of a sliding-window view (one block per
+#: pixel) rather than gathered pixel by pixel through flat indices: measured on the 280 000
+#: ring pixels of a growth round (tinted 1 % frame), 7x7 windows of values and marks in
+#: half the time; 3x3 blocks are slower that way, 5x5 about even.
+_BLOCK_COPY_FROM_PX = 7
+
+
+def _window_values(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: int) -> np.ndarray:
+    """(N, size_px^2) row-major windows of the 2-D ``x`` around (rows, cols), border
+    replicated (the order of :func:`_window_flat_indices`); a new array."""
+    if size_px < _BLOCK_COPY_FROM_PX:
+        return x.ravel()[_window_flat_indices(rows, cols, size_px, x.shape)]
+    h, w = x.shape
+    r = size_px // 2
+    blocks = np.lib.stride_tricks.sliding_window_view(x, (size_px, size_px))
+    inner = (rows >= r) & (rows < h - r) & (cols >= r) & (cols < w - r)
+    if inner.all():
+        return blocks[rows - r, cols - r].reshape(rows.size, size_px * size_px)
+    out = np.empty((rows.size, size_px * size_px), x.dtype)
+    at = np.flatnonzero(inner)
+    out[at] = blocks[rows[at] - r, cols[at] - r].reshape(at.size, size_px * size_px)
+    at = np.flatnonzero(~inner)
+    out[at] = x.ravel()[_window_flat_indices(rows[at], cols[at], size_px, x.shape)]
+    return out
+
+
+def _masked_median_chunk(x, excluded, rows, cols, smallest_px, symmetric, out, spread, about_plane=False):
+    """:func:`_masked_median_at` for one chunk of pixels, written into ``out`` and ``spread``
+    (``x`` and ``excluded``: 2-D, C-contiguous)."""
     with_spread = spread is not None
     todo = np.arange(rows.size)
     for size, min_good in zip(_REPLACEMENT_WINDOWS_PX, _REPLACEMENT_MIN_GOOD, strict=True):
@@ -226,9 +252,8 @@ def _masked_median_chunk(x_flat, shape, excluded_flat, rows, cols, smallest_px, 
             break
         if size < smallest_px:
             continue
-        flat = _window_flat_indices(rows[todo], cols[todo], size, shape)
-        vals = x_flat[flat].astype(_FLOAT, copy=False)
-        bad = excluded_flat[flat] != 0
+        vals = _window_values(x, rows[todo], cols[todo], size).astype(_FLOAT, copy=False)
+        bad = _window_values(excluded, rows[todo], cols[todo], size) != 0
         if symmetric:
             bad |= bad[:, ::-1]  # row-major window: the mirror of offset k is offset n - 1 - k
         good_count = size * size - np.count_nonzero(bad, axis=1)
