@@ -106,11 +106,13 @@ def _square_ring_spread(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, radiu
     dr, dc = _window_offsets(2 * r + 1)
     on_ring = np.maximum(np.abs(dr), np.abs(dc)) == r
     flat = _flat_indices(rows, cols, dr[on_ring], dc[on_ring], x.shape)
-    vals = np.ascontiguousarray(x).ravel()[flat].astype(np.float64)
+    vals = np.ascontiguousarray(x).ravel()[flat]
     half = vals.shape[1] // 2
     # Means of point-symmetric pairs (row-major ring: the mirror of k is n - 1 - k): on a
     # linear ramp each equals the centre's value, so only curvature and noise spread them.
-    pairs = 0.5 * (vals[:, :half] + vals[:, ::-1][:, :half])
+    # (Summed in float64 from the gathered values: no float64 copy of the whole ring.)
+    pairs = np.add(vals[:, :half], vals[:, ::-1][:, :half], dtype=np.float64)
+    pairs *= 0.5
     pairs.sort(axis=1)
     n = half
     return math.sqrt(2.0) * IQR_TO_SIGMA * (pairs[:, (3 * (n - 1)) // 4] - pairs[:, (n - 1) // 4])
