@@ -62,3 +62,22 @@ def test_window_values_are_the_flat_gather_at_borders_too(size_px):
     inner = (rows > 5) & (rows < 17) & (cols > 5) & (cols < 25)  # the block-copy path alone
     np.testing.assert_array_equal(_window_values(x, rows[inner], cols[inner], size_px),
                                   x.ravel()[_window_flat_indices(rows[inner], cols[inner], size_px, x.shape)])
+
+
+@pytest.mark.parametrize("smallest_px, symmetric, spread_about", [(3, False, "median"), (7, True, "median"),
+                                                                 (7, True, "plane")])
+def test_masked_median_with_marked_pixels_is_that_of_the_mask(smallest_px, symmetric, spread_about):
+    from napari_dslrxr.core.stages.impulse.neighbourhoods import _masked_median_at
+
+    rng = np.random.default_rng(smallest_px)
+    x = rng.normal(100, 5, (41, 53)).astype(np.float32)
+    excluded = (rng.random(x.shape) < 0.35).astype(np.uint8)  # many: every window size is used
+    excluded[10:20, 10:20] = 1  # a hole no 3x3-7x7 window around its centre can fill
+    rows, cols = np.divmod(np.arange(x.size), x.shape[1])  # borders included
+    kwargs = dict(smallest_px=smallest_px, symmetric=symmetric, with_spread=True, spread_about=spread_about)
+    before = x.copy()
+    ref = _masked_median_at(x, excluded, rows, cols, **kwargs)
+    got = _masked_median_at(x, excluded, rows, cols, marked_px=np.flatnonzero(excluded), **kwargs)
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(got[1], ref[1])
+    np.testing.assert_array_equal(x, before)  # the marked pixels are restored

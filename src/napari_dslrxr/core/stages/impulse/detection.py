@@ -286,7 +286,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         # rim as well changed the residual pulse energy by 1 % and doubled the damage of
         # false alarms on thin anatomy: measured, not kept.)
         scratch.ravel()[pulses] = 1
-        repl = _masked_median_at(x, scratch, rows, cols)
+        repl = _masked_median_at(x, scratch, rows, cols, marked_px=pulses)
         scratch.ravel()[pulses] = 0
         keep = np.isfinite(repl)
         x.ravel()[pulses[keep]] = repl[keep].astype(_FLOAT)
@@ -862,8 +862,9 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
             rejected[skip] = True
             tested_at = np.flatnonzero(~skip)
         tested = ring[tested_at]
+        marked = np.concatenate([pulses, ring])  # the nonzero marks
         med, spread = _masked_median_at(x, scratch, *np.divmod(tested, w), smallest_px=7,
-                                        symmetric=True, with_spread=True)
+                                        symmetric=True, with_spread=True, marked_px=marked)
         d = x.ravel()[tested].astype(np.float64) - med
         if circular:
             d -= np.rint(d)
@@ -877,7 +878,8 @@ def _grow_patches(x: np.ndarray, seeds: np.ndarray, model: _NoiseModel, params: 
                                  min_variance=spread[ok] ** 2)
         if round_ == 0 and strong_ring is not None:
             rim = np.flatnonzero(ok & ~new & _in_sorted(tested, strong_ring))
-            new[rim] = _rim_of_strong_seed(x, scratch, tested[rim], d[rim], med[rim], spread[rim], model, params)
+            new[rim] = _rim_of_strong_seed(x, scratch, tested[rim], d[rim], med[rim], spread[rim], model, params,
+                                           marked)
         # A rejected pixel failed the plain test (the strong rims' test only adds pulses),
         # which later rounds repeat while its window is unchanged.
         rejected[tested_at] = ~new
@@ -955,7 +957,7 @@ _NEAR_BIT = np.uint8(2)
 
 def _rim_of_strong_seed(x: np.ndarray, scratch: np.ndarray, pixels: np.ndarray, d: np.ndarray,
                         med: np.ndarray, spread: np.ndarray, model: _NoiseModel,
-                        params: ImpulseParams) -> np.ndarray:
+                        params: ImpulseParams, marked: np.ndarray | None = None) -> np.ndarray:
     """True for pixels of the first ring around strong seeds that are pulses as their rims.
 
     The prior is ``_STRONG_RIM_PRIOR`` (about 2.4 noise sigmas instead of 2.7) and Weber's
@@ -989,7 +991,7 @@ def _rim_of_strong_seed(x: np.ndarray, scratch: np.ndarray, pixels: np.ndarray, 
     if todo.size == 0:
         return out
     _, about_plane = _masked_median_at(x, scratch, *np.divmod(pixels[todo], x.shape[1]), smallest_px=7,
-                                       symmetric=True, with_spread=True, spread_about="plane")
+                                       symmetric=True, with_spread=True, spread_about="plane", marked_px=marked)
     # The ramp's part of the spread (what the plane explains): only a gentle ramp is
     # ignored. On a steep edge (the phantom's screen and anatomy edges, 5-8 noise sigmas
     # per px) a point-symmetric median cancels the ramp only as far as the edge is linear

@@ -166,7 +166,7 @@ def _window_flat_indices(rows: np.ndarray, cols: np.ndarray, size_px: int, shape
 
 def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, cols: np.ndarray,
                       smallest_px: int = 3, symmetric: bool = False, with_spread: bool = False,
-                      spread_about: str = "median"):
+                      spread_about: str = "median", marked_px: np.ndarray | None = None):
     """Median of the non-excluded pixels around each (row, col), float64.
 
     Tries windows of 3 (or ``smallest_px``), 5, 7 and 9 px and uses, per pixel, the smallest
@@ -184,15 +184,30 @@ def _masked_median_at(x: np.ndarray, excluded: np.ndarray, rows: np.ndarray, col
     deviation for Gaussian noise; larger where the window holds structure, float64), of
     their values (``spread_about="median"``) or of their residuals to their least-squares
     plane (``"plane"``, with ``symmetric`` only: a ramp is not structure there).
+
+    ``marked_px`` (optional): the flat indices of every nonzero pixel of ``excluded``. For a
+    floating-point ``x`` (finite, as every channel of the stage is) those pixels of ``x``
+    are then set to +inf for the time of the call (and restored), and the windows are read
+    from ``x`` alone: the same values, without gathering a window of ``excluded`` too
+    (measured: a quarter of the growth's time on 24 Mpx frames dense with pulses).
     """
     x = np.ascontiguousarray(x)
-    excluded = np.ascontiguousarray(excluded)
     out = np.full(rows.shape, np.nan)
     spread = np.full(rows.shape, np.nan) if with_spread else None
-    for start in range(0, rows.size, _MEDIAN_CHUNK_PX):  # bounded (N, window) temporaries
-        part = slice(start, start + _MEDIAN_CHUNK_PX)
-        _masked_median_chunk(x, excluded, rows[part], cols[part], smallest_px, symmetric,
-                             out[part], None if spread is None else spread[part], spread_about == "plane")
+    x_flat = x.reshape(-1)
+    if marked_px is not None and np.issubdtype(x.dtype, np.floating) and x.flags.writeable:
+        excluded, saved = None, x_flat[marked_px]
+        x_flat[marked_px] = np.inf
+    else:
+        excluded, saved = np.ascontiguousarray(excluded), None
+    try:
+        for start in range(0, rows.size, _MEDIAN_CHUNK_PX):  # bounded (N, window) temporaries
+            part = slice(start, start + _MEDIAN_CHUNK_PX)
+            _masked_median_chunk(x, excluded, rows[part], cols[part], smallest_px, symmetric,
+                                 out[part], None if spread is None else spread[part], spread_about == "plane")
+    finally:
+        if saved is not None:
+            x_flat[marked_px] = saved
     return (out, spread) if with_spread else out
 
 
@@ -246,7 +261,8 @@ def _window_values(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, size_px: i
 
 def _masked_median_chunk(x, excluded, rows, cols, smallest_px, symmetric, out, spread, about_plane=False):
     """:func:`_masked_median_at` for one chunk of pixels, written into ``out`` and ``spread``
-    (``x`` and ``excluded``: 2-D, C-contiguous)."""
+    (``x`` and ``excluded``: 2-D, C-contiguous; ``excluded`` None: the excluded pixels of
+    ``x`` are +inf)."""
     with_spread = spread is not None
     todo = np.arange(rows.size)
     for size, min_good in zip(_REPLACEMENT_WINDOWS_PX, _REPLACEMENT_MIN_GOOD, strict=True):
@@ -255,7 +271,10 @@ def _masked_median_chunk(x, excluded, rows, cols, smallest_px, symmetric, out, s
         if size < smallest_px:
             continue
         vals = _window_values(x, rows[todo], cols[todo], size).astype(_FLOAT, copy=False)
-        bad = _window_values(excluded, rows[todo], cols[todo], size) != 0
+        if excluded is None:
+            bad = vals == np.inf
+        else:
+            bad = _window_values(excluded, rows[todo], cols[todo], size) != 0
         if symmetric:
             bad |= bad[:, ::-1]  # row-major window: the mirror of offset k is offset n - 1 - k
         good_count = size * size - np.count_nonzero(bad, axis=1)
