@@ -81,3 +81,23 @@ def test_masked_median_with_marked_pixels_is_that_of_the_mask(smallest_px, symme
     np.testing.assert_array_equal(got[0], ref[0])
     np.testing.assert_array_equal(got[1], ref[1])
     np.testing.assert_array_equal(x, before)  # the marked pixels are restored
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_exact_test_skipping_the_spread_where_it_cannot_matter_gives_the_same_seeds(weighted):
+    from napari_dslrxr.core.stages.impulse import ImpulseParams
+    from napari_dslrxr.core.stages.impulse.detection import _exact_test
+    from napari_dslrxr.core.stages.impulse.noise_model import _NoiseModel
+
+    rng = np.random.default_rng(5)
+    x = rng.poisson(1000, (120, 150)).astype(np.float32)
+    x[:, 75:] += 3000  # an edge: the spread's floor decides there
+    x[rng.integers(0, 120, 300), rng.integers(0, 150, 300)] += rng.uniform(50, 2000, 300).astype(np.float32)
+    weight = rng.uniform(0.2, 3.0, x.shape).astype(np.float32) if weighted else None
+    model = _NoiseModel(a=1.9, b=4.0, pulse_rate=0.003, pulse_density=1.0 / 6000, polarity=1, var_floor=4.0)
+    params = ImpulseParams()
+    candidates = np.arange(x.size)
+    ref = _exact_test(x, candidates, model, params, False, weight)
+    got = _exact_test(x, candidates, model, params, False, weight, float(x.max()) - float(x.min()))
+    np.testing.assert_array_equal(got, ref)
+    assert 100 < ref.size < x.size // 10

@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from .neighbourhoods import (
+    IQR_TO_SIGMA,
     _Component,
     _detection_components,
     _flat_indices,
@@ -219,6 +220,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
     if value_range is None:
         value_range = float(x.max() - x.min())
     value_range = max(value_range, 1e-12)
+    x_span = float(x.max()) - float(x.min())  # bounds the structure guard's spread (_exact_test)
     components, fast_residual = _fast_residual(x, params.window_px, circular, residual_weight)
     steps.check()
     fit_valid = valid if fit_region is None else (fit_region if valid is None else valid & fit_region)
@@ -267,7 +269,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
             candidates = to_check
         if valid_flat is not None:
             candidates = candidates[valid_flat[candidates]]
-        seeds = _exact_test(x, candidates, model, params, circular, residual_weight)
+        seeds = _exact_test(x, candidates, model, params, circular, residual_weight, x_span)
         if footprint_noise is not None and to_check is None:
             seeds = _sorted_unique(np.concatenate([seeds, _footprint_seeds(x, fast_residual, model, params,
                                                                            footprint_noise, valid_flat)]), h * w)
@@ -769,26 +771,54 @@ def _unpredicted(x: np.ndarray, seeds: np.ndarray, predictor: "_Predictor", mode
 
 
 def _exact_test(x: np.ndarray, candidates: np.ndarray, model: _NoiseModel, params: ImpulseParams,
-                circular: bool, residual_weight: np.ndarray | None) -> np.ndarray:
-    """The candidates (flat indices) that are pulses by the posterior test."""
+                circular: bool, residual_weight: np.ndarray | None,
+                x_span: float | None = None) -> np.ndarray:
+    """The candidates (flat indices) that are pulses by the posterior test.
+
+    ``x_span`` (optional): ``x.max() - x.min()``. The structure guard's spread (32 ring
+    pixels gathered and sorted per candidate) is then computed only where it can change
+    the result: for candidates that fail the test without it, a floor between their
+    variance and the largest the span allows, all below the peak of the test's bound
+    (:meth:`_NoiseModel.test_limit`, rising there), can only raise the bound, so they fail
+    with it too. Most candidates of a later pass (the pixels around the previous pass's
+    pulses) are such noise; the result is the same.
+    """
     if candidates.size == 0:
         return candidates
     pulse = np.zeros(candidates.size, bool)
+    if x_span is not None:
+        const = model.log_odds_constant(params.posterior_threshold, model.pulse_rate)
+        # Below the peak with a margin for rounding; the spread's largest value: the ring's
+        # quartile difference of pair means is at most the span.
+        below_peak = math.exp(min(const - 1.0, 700.0)) * (1.0 - 1e-9)
+        largest_floor = math.sqrt(2.0) * IQR_TO_SIGMA * x_span * (1.0 + 1e-6) / _SEED_SPREAD_TOLERANCE
     for start in range(0, candidates.size, _CHUNK_PX):  # bounded temporaries (later passes test many)
         part = slice(start, start + _CHUNK_PX)
         rows, cols = np.divmod(candidates[part], x.shape[1])
         d, med = _exact_residual(x, rows, cols, params.window_px, circular, None)
-        spread = _square_ring_spread(x, rows, cols, params.max_patch_px)
+        weight = None
         if residual_weight is not None:
             weight = residual_weight[rows, cols]
             d *= weight
+        need = slice(None)
+        if x_span is not None:
+            s2 = model.variance(med)
+            floor2 = largest_floor * largest_floor if weight is None else (largest_floor * weight.astype(np.float64)) ** 2
+            unchanged = ((d * d <= model.test_limit(s2, params.posterior_threshold) * (1.0 - 1e-12))
+                         & (np.maximum(s2, floor2) <= below_peak))
+            need = np.flatnonzero(~unchanged)
+            rows, cols, d, med = rows[need], cols[need], d[need], med[need]
+            weight = None if weight is None else weight[need]
+        spread = _square_ring_spread(x, rows, cols, params.max_patch_px)
+        if weight is not None:
             spread *= weight
         # Structure guard: where the background around the candidate spreads far more than the
         # noise (an edge, the corner of the screen), the residual is not Gaussian around the
         # median; the variance is then at least (spread / _SEED_SPREAD_TOLERANCE)^2. The spread
         # is taken just outside the largest patch, so the patch itself never inflates it.
         spread /= _SEED_SPREAD_TOLERANCE
-        pulse[part] = model.is_pulse(d, med, params.posterior_threshold, min_variance=spread * spread)
+        pulse[start:start + _CHUNK_PX][need] = model.is_pulse(d, med, params.posterior_threshold,
+                                                               min_variance=spread * spread)
     return candidates[pulse]
 
 
