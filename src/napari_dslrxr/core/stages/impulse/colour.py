@@ -78,7 +78,7 @@ def rgb_to_hsv_counts(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     for r0 in range(0, height, rows_per_block):
         r1 = min(height, r0 + rows_per_block)
         block = cv2.cvtColor(np.ascontiguousarray(rgb[r0:r1], dtype=_FLOAT), cv2.COLOR_RGB2HSV)
-        hue[r0:r1], sat[r0:r1], val[r0:r1] = block[..., 0], block[..., 1], block[..., 2]
+        cv2.split(block, [hue[r0:r1], sat[r0:r1], val[r0:r1]])  # into the planes (no strided copies)
     # Hue can round up to exactly 1.0 (360 degrees); every use wraps it modulo 1.
     hue *= _FLOAT(1.0 / 360.0)
     return hue, sat, val

@@ -43,6 +43,13 @@ class _NoiseModel:
                 + 2.0 * math.log(posterior_threshold / (1.0 - posterior_threshold))
                 - math.log(2.0 * math.pi))
 
+    def test_limit(self, s2: np.ndarray, posterior_threshold: float, prior: float | None = None) -> np.ndarray:
+        """The bound ``s^2 (const - ln s^2)`` that ``d^2`` must exceed at variance ``s2``
+        (:meth:`is_pulse`). As a function of ``s2`` it rises up to ``exp(const - 1)`` and
+        falls beyond."""
+        const = self.log_odds_constant(posterior_threshold, self.pulse_rate if prior is None else prior)
+        return s2 * (const - np.log(s2))
+
     def is_pulse(self, d: np.ndarray, m: np.ndarray, posterior_threshold: float,
                  prior: float | None = None, min_variance: np.ndarray | None = None,
                  min_contrast: float | None = None) -> np.ndarray:
@@ -56,8 +63,7 @@ class _NoiseModel:
         s2 = self.variance(m)
         if min_variance is not None:
             s2 = np.maximum(s2, min_variance)
-        const = self.log_odds_constant(posterior_threshold, self.pulse_rate if prior is None else prior)
-        limit = s2 * (const - np.log(s2))
+        limit = self.test_limit(s2, posterior_threshold, prior)
         pulse = (d * d > limit) & (limit > 0) | (limit <= 0)
         if self.polarity > 0:
             pulse &= d > 0
