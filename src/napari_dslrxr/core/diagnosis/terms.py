@@ -5,10 +5,12 @@
   rotation about the image centre (first order: ``O = L - ∇L · δ(q)``; the displacements these
   describe are a fraction of a pixel, where the first-order form is accurate). Without them a
   0.1 px shift or a 0.05 % magnification error leaves edge dipoles that library terms absorb.
-* **Generic smooth competitors** (never named as physics): a multiplicative and an additive
-  2-D Legendre surface of degree 4, and a displacement field of degree 2-3. A library term is
-  only credited with a smooth mismatch if it explains it better (by BIC) than these do;
-  otherwise the mismatch is reported unexplained.
+* **Out-of-library competitors** (never named as physics): a multiplicative and an additive
+  2-D Legendre surface of degree 4, a displacement field of degree 2-3, a keystone (the
+  first-order projective distortion of a tilted camera or screen) and a lens ghost (a
+  defocused copy of the image inverted about the optical axis). A library term is only
+  credited with a mismatch if it explains it better (by BIC) than these do; otherwise the
+  mismatch is reported unexplained.
 * **Physical bounds** of library terms from the scene (SDD, field size, plausible lenses and
   physical magnitudes), tighter than the library's generic prior ranges.
 """
