@@ -25,8 +25,11 @@ def test_correlated_noise_null_adds_nothing_and_reports_the_true_noise_chi2():
     row = _run("null:corr1.0")  # lag-1 correlation 0.78: smoothed like demosaiced noise
     assert row["named"] == [] and not row["unexplained"], row["signatures"]
     assert row["lag1"] > 0.6
-    # target 0.05; at lag-1 correlation >= 0.75 the study shows up to 0.07 (see README)
-    assert abs(row["chi2_final"] - row["chi2_true_noise"]) <= 0.08
+    # 0.0734 off before the prewhitening mirror-padded the field (the periodic seam inflated the
+    # whitened variance near the border); the target is 0.05
+    row2 = study.run_case([c for c in CASES if c["label"] == "null:corr1.0"][1])
+    assert abs(row["chi2_final"] - row["chi2_true_noise"]) <= 0.05
+    assert abs(row2["chi2_final"] - row2["chi2_true_noise"]) <= 0.05
 
 
 def test_subpixel_shift_and_magnification_are_registration_not_physics():
@@ -66,3 +69,21 @@ def test_keystone_is_unexplained_not_lens_distortion():
     assert row["snr_base_refit"] > 20
     assert row["named"] == [] and row["unexplained"], row
     assert any("geometric distortion" in s for s in row["signatures"]), row["signatures"]
+
+
+def test_weak_keystone_is_not_named_lens_distortion():
+    # SNR 11 after the registration refit: lens distortion passed (ΔBIC 16) and the 14-parameter
+    # generic warp could not beat it, so the old code named lens_distortion; the keystone's own
+    # 2-parameter projective competitor explains far more (ΔBIC 120)
+    row = _run("keystone@20")
+    assert row["snr_base_refit"] > 10
+    assert row["named"] == [] and row["unexplained"], row
+    assert any("keystone" in s for s in row["signatures"]), row["signatures"]
+
+
+@pytest.mark.slow
+def test_strong_lens_ghost_is_unexplained_not_three_library_terms():
+    # old code: vignetting, scatter and heel_effect, each accepted on a part of the ghost
+    row = _run("lens_ghost@40")
+    assert row["named"] == [] and row["unexplained"], row
+    assert any("lens ghost" in s for s in row["signatures"]), row["signatures"]

@@ -12,7 +12,8 @@ import numpy as np
 from ..simulation.physics_terms import ChainGrid, PhysicsTerm, get_term
 from .fitting import Layout, Problem, covariance, orthonormal, tall_product
 from .result import AddedTerm, DiagnosisOptions
-from .terms import GENERIC_SIGNATURE, SMOOTH_ADDITIVE, SMOOTH_WARP, additive_twin, physical_bounds, probe_params
+from .terms import GENERIC_SIGNATURE, GHOST_COPY, KEYSTONE, SMOOTH_ADDITIVE, SMOOTH_WARP, additive_twin, \
+    physical_bounds, probe_params
 
 
 def _candidate_columns(problem: Problem, layout: Layout, x: np.ndarray, term: PhysicsTerm,
@@ -140,8 +141,16 @@ def _start_from_candidate(term: PhysicsTerm, cand: dict, grid: ChainGrid) -> dic
 #: small field, so scatter is not held to this test).
 SMOOTH_FIELD_TERMS = frozenset({"heel_effect", "inverse_square", "vignetting"})
 #: Terms that are a smooth displacement of the image, which a keystone (tilted sensor or
-#: screen) could mimic: accepted only if their refit beats a generic warp by BIC.
+#: screen) could mimic: accepted only if their refit beats, by BIC, both the keystone (the
+#: lowest-order projective distortion, 2 parameters) and a generic warp (14 parameters).
 GEOMETRIC_TERMS = frozenset({"lens_distortion"})
+#: Terms a defocused, inverted copy of the image (a lens ghost) partly mimics: the smooth fields
+#: (its low frequencies), scatter (a blurred copy of the object), the mirror ghost (a copy) and
+#: the terms that follow the local intensity or path (beam hardening, camera gamma: the ghost's
+#: light matters most where the object is dark): accepted only if their refit beats the generic
+#: ghost copy by BIC. Not the edge-profile terms (glare, focal-spot lobes, lens distortion),
+#: which change the shape of edges, as a defocused copy does not.
+GHOST_MIMICS = SMOOTH_FIELD_TERMS | {"scatter", "mirror_ghost", "beam_hardening", "detector_gamma"}
 
 
 def _delta_bic_beyond(problem: Problem, trial: _Trial, additive: _Trial, opts: DiagnosisOptions,
@@ -206,12 +215,13 @@ def _confusable(cand: dict, ranking: list[dict], threshold: float) -> list[tuple
 
 def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, test, say):
     """Refit the best candidates, accept the best refit (or nothing); returns
-    ``(trial or None, AddedTerm or None, comparison list, generic signature or None)``."""
+    ``(trial or None, AddedTerm or None, comparison list, generic signature or None, the generic
+    alternative that explained most of what it rejected or None)``."""
     trials = _refit_candidates(problem, layout, x, chi2_now, ranking, opts, log_n, say)
     comparison = [t.summary() for t in trials]
     passing = [t for t in trials if t.delta_bic > opts.accept_delta_bic]
     if not passing:
-        return None, None, comparison, None
+        return None, None, comparison, None, None
     # A smooth-field library term must, fitted on top of a generic smooth additive light field,
     # still gain ΔBIC > threshold. Stray light or haze (outside
     # the library) is then reported unexplained instead of being credited to heel, vignetting
@@ -222,21 +232,37 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
         additive = _refit_with(problem, layout, x, chi2_now, SMOOTH_ADDITIVE, SMOOTH_ADDITIVE.null_params(),
                                opts, log_n)
         comparison.append({**additive.summary(), "generic": True})
-    warp = None
+    geometric: list[_Trial] = []
     if any(t.term.name in GEOMETRIC_TERMS for t in passing):
-        warp = _refit_with(problem, layout, x, chi2_now, SMOOTH_WARP, SMOOTH_WARP.null_params(), opts, log_n)
-        comparison.append({**warp.summary(), "generic": True})
-    only_smooth_light = only_warp = 0
+        for alternative in (KEYSTONE, SMOOTH_WARP):
+            geometric.append(_refit_with(problem, layout, x, chi2_now, alternative, alternative.null_params(),
+                                         opts, log_n))
+            comparison.append({**geometric[-1].summary(), "generic": True})
+    ghost: list[_Trial] = []  # fitted once, when a candidate it mimics passes
+    # the generic alternatives that rejected a candidate (their signature is reported)
+    rejected_by: list[str] = []
     # generic fields that explained more than an earlier candidate: a later (weaker) candidate
     # must still gain ΔBIC > threshold on top of them, or it is only absorbing a part of the
     # out-of-library structure
     rejecting: list[_Trial] = []
     for i, winner in enumerate(passing):
-        if winner.term.name in GEOMETRIC_TERMS and warp.delta_bic > winner.delta_bic + opts.accept_delta_bic:
-            say(f"{winner.term.name}: a generic smooth warp explains more (ΔBIC {warp.delta_bic:.1f} against "
+        alternatives = list(geometric) if winner.term.name in GEOMETRIC_TERMS else []
+        if winner.term.name in GHOST_MIMICS:
+            if not ghost:
+                ghost.append(_refit_with(problem, layout, x, chi2_now, GHOST_COPY, probe_params(GHOST_COPY,
+                                                                                               problem.model.grid),
+                                         opts, log_n))
+                comparison.append({**ghost[0].summary(), "generic": True})
+            alternatives += ghost
+        # an out-of-library alternative that explains clearly more (by the acceptance threshold,
+        # as any term against the model without it): the candidate only absorbs a part of it
+        better = [g for g in alternatives if g.delta_bic > winner.delta_bic + opts.accept_delta_bic]
+        if better:
+            g = max(better, key=lambda t: t.delta_bic)
+            say(f"{winner.term.name}: the generic {g.term.name} explains more (ΔBIC {g.delta_bic:.1f} against "
                 f"{winner.delta_bic:.1f}) — not accepted")
-            only_warp += 1
-            _append_once(rejecting, warp)
+            rejected_by.append(g.term.name)
+            _append_once(rejecting, g)
             continue
         # each joint refit of the winner on top of a generic field is done once (the additive
         # field can both have rejected an earlier candidate and be this one's smooth-light test)
@@ -261,7 +287,7 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
             if winner.delta_bic < additive.delta_bic - opts.accept_delta_bic:
                 say(f"{winner.term.name}: ΔBIC {beyond:.1f} beyond a smooth additive light field, which "
                     f"explains more — not accepted")
-                only_smooth_light += 1
+                rejected_by.append(SMOOTH_ADDITIVE.name)
                 _append_once(rejecting, additive)
                 continue
             # as good as the 14-parameter generic field and simpler: named, but not separable
@@ -281,7 +307,7 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
                 say(f"{winner.term.name}: its field added to the light fits about as well as multiplying "
                     f"it (χ² {twin.chi2:.1f} against {winner.chi2:.1f}, ΔBIC ≤ {opts.accept_delta_bic:g}) "
                     f"— additive light, not accepted")
-                only_smooth_light += 1
+                rejected_by.append(SMOOTH_ADDITIVE.name)
                 _append_once(rejecting, twin)
                 continue
         gain = _heldout_gain(problem, layout, x, winner, train, test)
@@ -292,10 +318,10 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
                             ranking, opts)
         say(f"added {winner.term.name} ΔBIC {winner.delta_bic:.1f} (runner-up "
             f"{added.runner_up or '—'}) held-out gain {gain:.1f}")
-        return winner, added, comparison, None
-    signature = (GENERIC_SIGNATURE["smooth_additive"] if only_smooth_light
-                 else GENERIC_SIGNATURE["smooth_warp"] if only_warp else None)
-    return None, None, comparison, signature
+        return winner, added, comparison, None, None
+    signature = "; ".join(GENERIC_SIGNATURE[name] for name in dict.fromkeys(rejected_by)) or None
+    best_generic = max(rejecting, key=lambda t: t.delta_bic) if rejecting else None
+    return None, None, comparison, signature, best_generic
 
 
 def _append_once(trials: list[_Trial], trial: _Trial) -> None:

@@ -38,6 +38,11 @@ from ..robust import MAD_TO_SIGMA, robust_sigma
 SHORT_LAG_PX = 5      # correlation assumed to vanish beyond this lag (coarse pixels)
 SILL_LAG_PX = 7       # lag used for the sill (variance)
 SPECTRUM_FLOOR = 0.3   # P(f) floor (fraction of its mean): caps the gain at high frequencies
+#: Mirror padding (px) of the prewhitening: a periodic transform joins the noise of opposite
+#: borders, where the field is then uncorrelated across the seam and the whitening (which
+#: amplifies the frequencies correlated noise lacks) inflates it (whitened variance 0.65
+#: within 6 px of the border against 0.38 inside, on a lag-1 0.78 null at 128²)
+WHITEN_PAD_PX = 8
 
 
 @dataclass
@@ -63,6 +68,7 @@ class NoiseModel:
     n_samples: int = 0
     _inv_sqrt_spectrum: np.ndarray | None = field(default=None, repr=False)
     _shape: tuple[int, int] | None = field(default=None, repr=False)
+    _padded_shape: tuple[int, int] | None = field(default=None, repr=False)
     effective_fraction: float = 1.0
 
     @property
@@ -106,7 +112,10 @@ class NoiseModel:
         limit = max(0.02, 5.0 / np.sqrt(max(self.n_samples, 1)))
         if max(abs(r) for r in off.values()) < limit:
             return
-        h, w = shape
+        from scipy import fft as sfft
+
+        # the filter acts on the mirror-padded field (see WHITEN_PAD_PX)
+        h, w = self._padded_shape = tuple(sfft.next_fast_len(n + 2 * WHITEN_PAD_PX, real=True) for n in shape)
         fy = np.fft.fftfreq(h)[:, None]
         fx = np.fft.rfftfreq(w)[None, :]
         spectrum = np.ones((h, w // 2 + 1))
@@ -140,7 +149,11 @@ class NoiseModel:
             return u
         from scipy import fft as sfft
 
-        return sfft.irfft2(sfft.rfft2(u) * self._inv_sqrt_spectrum, s=u.shape)
+        p = WHITEN_PAD_PX
+        h, w = u.shape
+        nh, nw = self._padded_shape
+        padded = np.pad(u, ((p, nh - h - p), (p, nw - w - p)), mode="symmetric")
+        return sfft.irfft2(sfft.rfft2(padded) * self._inv_sqrt_spectrum, s=padded.shape)[p:p + h, p:p + w]
 
     def to_json(self, binning: int = 1) -> dict:
         return {"source": self.source,

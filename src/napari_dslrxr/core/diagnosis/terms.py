@@ -5,10 +5,12 @@
   rotation about the image centre (first order: ``O = L - ∇L · δ(q)``; the displacements these
   describe are a fraction of a pixel, where the first-order form is accurate). Without them a
   0.1 px shift or a 0.05 % magnification error leaves edge dipoles that library terms absorb.
-* **Generic smooth competitors** (never named as physics): a multiplicative and an additive
-  2-D Legendre surface of degree 4, and a displacement field of degree 2-3. A library term is
-  only credited with a smooth mismatch if it explains it better (by BIC) than these do;
-  otherwise the mismatch is reported unexplained.
+* **Out-of-library competitors** (never named as physics): a multiplicative and an additive
+  2-D Legendre surface of degree 4, a displacement field of degree 2-3, a keystone (the
+  first-order projective distortion of a tilted camera or screen) and a lens ghost (a
+  defocused copy of the image inverted about the optical axis). A library term is only
+  credited with a mismatch if it explains it better (by BIC) than these do; otherwise the
+  mismatch is reported unexplained.
 * **Physical bounds** of library terms from the scene (SDD, field size, plausible lenses and
   physical magnitudes), tighter than the library's generic prior ranges.
 """
@@ -122,12 +124,67 @@ SMOOTH_WARP = PhysicsTerm(
     "x00", _apply_smooth_warp,
     physics="Generic smooth geometric distortion, displacements of degree 2-3 (not physics: a "
             "competitor of lens distortion).")
-GENERIC_COMPETITORS = (SMOOTH_GAIN, SMOOTH_ADDITIVE, SMOOTH_WARP)
+
+
+def _apply_keystone(state: ChainState, p: dict) -> None:
+    tx, ty = p["tilt_x"], p["tilt_y"]
+    if tx == 0.0 and ty == 0.0:
+        return
+    g = state.grid
+    gy, gx = state.light_gradient()
+    # the first-order projective map of a plane seen at a small tilt: the local scale changes
+    # linearly across the field, δ(q) = (tx·x + ty·y)·q (x, y in half-field units, q in px)
+    local_scale = tx * g.x + ty * g.y
+    dx = local_scale * (g.x * g.half_size_px)
+    dy = local_scale * (g.y * g.half_size_px)
+    state.light = state.light - (gx * dx + gy * dy)
+
+
+KEYSTONE = PhysicsTerm(
+    "keystone", "optics",
+    (P("tilt_x", 0.0, (-0.02, 0.02), 0.0, 1e-5), P("tilt_y", 0.0, (-0.02, 0.02), 0.0, 1e-5)),
+    "tilt_x", _apply_keystone,
+    physics="Keystone of a camera or screen tilted against the other (the first-order projective "
+            "distortion, 2 parameters; not in the library: a competitor of lens distortion).")
+
+
+def _apply_ghost_copy(state: ChainState, p: dict) -> None:
+    eps = p["epsilon"]
+    if eps == 0.0:
+        return
+    g = state.grid
+    sigma = p["sigma_px"]
+    # point inversion about the optical axis at (centre_x, centre_y) half-field units from the
+    # image centre: L(2c - q) is the flipped image shifted by 2c
+    sx, sy = 2.0 * p["centre_x"] * g.half_size_px, 2.0 * p["centre_y"] * g.half_size_px
+    flipped = state.light[::-1, ::-1]
+    pad = int(np.ceil(4.0 * sigma + 2.0 * max(abs(sx), abs(sy)))) + 2
+    padded = np.pad(flipped, pad, mode="reflect")
+    fy = np.fft.fftfreq(padded.shape[0])[:, None]
+    fx = np.fft.rfftfreq(padded.shape[1])[None, :]
+    transfer = np.exp(-2.0 * np.pi**2 * sigma**2 * (fx**2 + fy**2) - 2j * np.pi * (fy * sy + fx * sx))
+    ghost = np.fft.irfft2(np.fft.rfft2(padded) * transfer, s=padded.shape)[pad:-pad, pad:-pad]
+    state.light = state.light + eps * ghost
+
+
+GHOST_COPY = PhysicsTerm(
+    "ghost_copy", "optics",
+    (P("epsilon", 0.0, (0.0, 0.2), 0.005, 1e-4), P("sigma_px", 6.0, (0.5, 40.0), 6.0, 0.05, unit="px"),
+     P("centre_x", 0.0, (-0.3, 0.3), 0.0, 0.005), P("centre_y", 0.0, (-0.3, 0.3), 0.0, 0.005)),
+    "epsilon", _apply_ghost_copy,
+    physics="Generic lens ghost: a defocused copy of the image inverted about the optical axis (a "
+            "second reflection between lens surfaces or the sensor; not in the library: a "
+            "competitor of the smooth fields, scatter and the mirror ghost).")
+GENERIC_COMPETITORS = (SMOOTH_GAIN, SMOOTH_ADDITIVE, SMOOTH_WARP, KEYSTONE, GHOST_COPY)
 GENERIC_SIGNATURE = {"smooth_gain": "smooth multiplicative field not matching any library term",
                      "smooth_additive": "smooth additive light (stray light / haze) not matching "
                                         "any library term",
                      "smooth_warp": "smooth geometric distortion (keystone, tilted sensor or "
-                                    "screen) not matching any library term"}
+                                    "screen) not matching any library term",
+                     "keystone": "smooth geometric distortion of keystone form (projective: camera "
+                                 "or screen tilted against the other) not matching any library term",
+                     "ghost_copy": "ghost-like copy of the image (inverted about the optical axis and "
+                                   "blurred: a lens ghost) not matching any library term"}
 
 
 #: Suffix of a smooth-field term's additive twin (see :func:`additive_twin`).
