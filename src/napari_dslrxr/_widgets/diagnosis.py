@@ -28,7 +28,7 @@ from ..core.errors import ParameterError
 from ..core.diagnosis.report import write_report
 from ..core.simulation.simulator import Scene, load_scene, parse_scene
 from ._controls import param_widget, restore_defaults_button
-from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker
+from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker, scroll_long_readout
 from ._layers import (NEXT_STEP_ADDS_LAYER, remove_layer, reset_choices, reveal_text_steps, same_geometry,
                       show_layer_steps, single_channel_layers)
 
@@ -122,6 +122,7 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
                                   self._binning, self._run,
                                   *self._job.widgets, self._readout, self._report_dir, self._write, self._open,
                                   self._restore])
+        scroll_long_readout(self._readout)  # a long result scrolls, the window keeps its size
         self.result: DiagnosisResult | None = None
         self.report_paths: dict[str, Path] = {}
         self._inputs: list[Path] = []
