@@ -125,7 +125,7 @@ READOUT_MAX_LINES = 10
 
 def scroll_long_readout(label: Any, max_lines: int = READOUT_MAX_LINES) -> Any:
     """Put a read-out (:func:`readout_label`, already placed in its widget) in a scroll area
-    at most ``max_lines`` lines high; return the scroll area.
+    ``max_lines`` lines high; return the scroll area.
 
     The docks have no scroll area of their own: a result's read-out of a dozen wrapped lines
     (detector quality, diagnosis, PSF fit) raised the widget's minimum height above the
@@ -143,9 +143,9 @@ def scroll_long_readout(label: Any, max_lines: int = READOUT_MAX_LINES) -> Any:
     scroll.setFrameShape(QFrame.Shape.NoFrame)
     scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
     scroll.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Preferred)
-    line_px = native.fontMetrics().lineSpacing()
-    scroll.setMinimumHeight(line_px + 6)  # an empty read-out takes one line, as the bare label did
-    scroll.setMaximumHeight(max_lines * line_px + 6)
+    # A fixed height: a result of any length then changes nothing in the dock's layout (no
+    # relayout in the turn that shows it); longer text scrolls.
+    scroll.setFixedHeight(max_lines * native.fontMetrics().lineSpacing() + 6)
     scroll.setMinimumWidth(native.minimumWidth())
     if layout is not None:
         layout.replaceWidget(native, scroll)
