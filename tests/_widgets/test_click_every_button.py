@@ -47,11 +47,49 @@ pytestmark = pytest.mark.gui
 #: Longest GUI-thread block by (widget, button), in three phases: the click handler itself,
 #: while the job computed in its worker, and showing the result (read by the benchmark).
 GAPS: dict[tuple[str, str], dict[str, float]] = {}
+#: Layers each job's result added, by (widget, button): ``(name, event-loop turn, repaints
+#: held)`` (:class:`LayerAdds`); checked in :meth:`Plugin.click`.
+RESULT_ADDS: dict[tuple[str, str], list[tuple[str, int, bool]]] = {}
 #: The samples every test opens (the set holds radiograph, flat and dark); the first test opens
 #: the three single ones too, so every sample command of the manifest is used.
 SAMPLE_KEYS = ("dslr_set", "edges", "scene", "qc_set")
 SINGLE_SAMPLE_KEYS = ("radiograph", "flat", "dark")
 DOCS_SHOTS = Path(__file__).resolve().parents[2] / "docs" / "screenshots"
+
+
+class LayerAdds:
+    """The layers added to the viewer while it watches: their time, name, event-loop turn
+    and whether the window's repaints were held then.
+
+    A turn is the run of code between two passes of the event loop: a second layer added
+    before the zero-delay timer that the first one posted has fired was added in the same
+    turn (one freeze of the viewer).
+    """
+
+    def __init__(self, viewer):
+        self.viewer = viewer
+        self.window = viewer.window._qt_window
+        self.adds: list[tuple[float, str, int, bool]] = []
+        self._turn, self._in_turn = 0, False
+        viewer.layers.events.inserted.connect(self._inserted)
+
+    def _inserted(self, event) -> None:
+        from qtpy.QtCore import QTimer
+
+        if not self._in_turn:
+            self._turn += 1
+            self._in_turn = True
+            QTimer.singleShot(0, self._turn_over)
+        self.adds.append((time.perf_counter(), event.value.name, self._turn, not self.window.updatesEnabled()))
+
+    def _turn_over(self) -> None:
+        self._in_turn = False
+
+    def since(self, start: float) -> list[tuple[str, int, bool]]:
+        return [(name, turn, held) for t, name, turn, held in self.adds if t >= start]
+
+    def close(self) -> None:
+        self.viewer.layers.events.inserted.disconnect(self._inserted)
 
 
 class Plugin:
@@ -104,15 +142,21 @@ class Plugin:
         assert button.isEnabled(), f"{widget_name}: '{text}' is disabled"
         widget = self.widgets[widget_name]
         monitor = EventLoopMonitor().start()
+        adds = LayerAdds(self.viewer)
         clicked_at = time.perf_counter()
         self.qtbot.mouseClick(button, Qt.MouseButton.LeftButton)
         handled_at = time.perf_counter()
         job = getattr(widget, "_job", None)
         worker = None if job is None else job.worker
-        if wait and worker is not None:
-            self.qtbot.waitUntil(lambda: worker.dslrxr_finished, timeout=timeout_ms)
-        self.qtbot.wait(20)
-        monitor.stop()
+        try:
+            if wait and worker is not None:
+                self.qtbot.waitUntil(lambda: worker.dslrxr_finished, timeout=timeout_ms)
+            self.qtbot.wait(20)
+        finally:
+            monitor.stop()
+            adds.close()
+        if wait and worker is not None and not worker.dslrxr_cancelled:
+            self.check_result_adds(widget_name, text, adds.since(getattr(worker, "dslrxr_returned_at", handled_at)))
         phases = GAPS.setdefault((widget_name, text), {"click": 0.0, "job": 0.0, "result": 0.0})
         phases["click"] = max(phases["click"], handled_at - clicked_at)
         if wait and worker is not None:
@@ -128,6 +172,19 @@ class Plugin:
                     phases[phase] = max(phases.get(phase, 0.0), cpu_between(a, b))
         self.clicked[widget_name].add(text)
         return self.check_notifications(f"{widget_name}: '{text}'", refused)
+
+    @staticmethod
+    def check_result_adds(widget_name: str, text: str, added: list[tuple[str, int, bool]]) -> None:
+        """A job's result adds its layers one per event-loop turn, each in a step announced
+        as adding a layer (the window's repaints held; see ``run_in_worker``): napari builds a
+        new layer's controls and visual in that turn, about 80 ms of GUI time idle, so two in
+        one turn, or one with the window's repaint on top, freeze the viewer past 0.1 s."""
+        RESULT_ADDS.setdefault((widget_name, text), []).extend(added)
+        turns = [turn for _, turn, _ in added]
+        crowded = [name for name, turn, _ in added if turns.count(turn) > 1]
+        assert not crowded, f"{widget_name}: '{text}' added {crowded} in one event-loop turn"
+        unheld = [name for name, _, held in added if not held]
+        assert not unheld, f"{widget_name}: '{text}' added {unheld} without holding the window's repaints"
 
     def toggle_live_preview(self, widget_name: str, preview: str) -> None:
         """The live preview layer appears only when switched on, and goes when switched off."""
@@ -540,8 +597,15 @@ def test_diagnosis_buttons(plugin, tmp_path, monkeypatch, shots):
     widget._max_terms.value = 1
     stopped_s = cancel_running(plugin, name, "Diagnose", "Cancel", None, "residual z (final model)")
     assert stopped_s < 5.0, f"the diagnosis ran on {stopped_s:.1f} s after Cancel"
+    RESULT_ADDS.pop((name, "Diagnose"), None)
     plugin.click(name, "Diagnose", timeout_ms=120_000)
     assert "veiling_glare" in widget._readout.value
+    # the first result's six layers, each in its own turn (Plugin.check_result_adds)
+    added = RESULT_ADDS[(name, "Diagnose")]
+    assert {n for n, _, _ in added} == {"residual z (base model)", "residual z (final model)",
+                                        "residual z 4x4 (base model)", "residual z 4x4 (final model)",
+                                        "residual map labels", "mismatch regions"}, added
+    assert len({turn for _, turn, _ in added}) == len(added) == 6
     before, after = viewer.layers["residual z 4x4 (base model)"], viewer.layers["residual z 4x4 (final model)"]
     assert before.visible and after.visible and after.translate[1] > before.translate[1]
     answer_file_dialog(widget._report_dir, "report")

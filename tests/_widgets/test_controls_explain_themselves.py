@@ -87,3 +87,30 @@ def test_nothing_is_cut_at_the_dock_width(docked, qtbot):
         for w in controls(container):
             if isinstance(w, FloatSlider) and w.native.isVisible():
                 assert w.native.width() >= 150, (name, w.label, w.native.width())
+
+
+def test_a_long_read_out_scrolls_and_the_window_keeps_its_size(docked, qtbot):
+    """A result's read-out of many lines (detector quality, diagnosis, PSF fit) grew the
+    widget's minimum height past the window's: Qt made the main window taller than the
+    screen (1000 to 1112 px here) and resized the canvas, whose full redraw froze the viewer
+    in the turn that showed the result. The read-out scrolls instead; the last line is still
+    there to read."""
+    from qtpy.QtWidgets import QScrollArea
+
+    viewer, widgets = docked
+    window, canvas = viewer.window._qt_window, viewer.window._qt_viewer.canvas.native
+    text = "\n".join(f"line {k}: MTF 0.123 ± 0.004, NNPS 1.2e-05 ± 3e-07 mm², DQE 0.45 ± 0.02"
+                     for k in range(20))
+    for name in ("Detector quality", "Diagnosis", "PSF from edges", "Flat field"):
+        container = widgets[name]
+        container.native.window().raise_()
+        qtbot.wait(30)
+        before = (window.size(), canvas.size())
+        container._readout.value = text
+        qtbot.wait(100)
+        after = (window.size(), canvas.size())
+        assert after == before, (name, before, after)
+        scroll = container._readout.native.parentWidget().parentWidget()
+        assert isinstance(scroll, QScrollArea), name
+        assert scroll.height() < container._readout.native.height(), name  # it scrolls
+        assert container._readout.value.endswith("line 19: MTF 0.123 ± 0.004, NNPS 1.2e-05 ± 3e-07 mm², DQE 0.45 ± 0.02")

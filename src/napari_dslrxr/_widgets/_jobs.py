@@ -119,6 +119,41 @@ def readout_label() -> Any:
     return label
 
 
+#: Lines a read-out shows before it scrolls (:func:`scroll_long_readout`).
+READOUT_MAX_LINES = 10
+
+
+def scroll_long_readout(label: Any, max_lines: int = READOUT_MAX_LINES) -> Any:
+    """Put a read-out (:func:`readout_label`, already placed in its widget) in a scroll area
+    ``max_lines`` lines high; return the scroll area.
+
+    The docks have no scroll area of their own: a result's read-out of a dozen wrapped lines
+    (detector quality, diagnosis, PSF fit) raised the widget's minimum height above the
+    window's, so Qt grew the main window past the screen (1000 to 1112 px) and resized the
+    canvas, whose full redraw fell in the turn that showed the result.
+    """
+    from qtpy.QtCore import Qt
+    from qtpy.QtWidgets import QFrame, QScrollArea, QSizePolicy
+
+    native = label.native
+    parent = native.parentWidget()
+    layout = None if parent is None else parent.layout()
+    scroll = QScrollArea()
+    scroll.setWidgetResizable(True)
+    scroll.setFrameShape(QFrame.Shape.NoFrame)
+    scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    scroll.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Preferred)
+    # A fixed height: a result of any length then changes nothing in the dock's layout (no
+    # relayout in the turn that shows it); longer text scrolls.
+    scroll.setFixedHeight(max_lines * native.fontMetrics().lineSpacing() + 6)
+    scroll.setMinimumWidth(native.minimumWidth())
+    if layout is not None:
+        layout.replaceWidget(native, scroll)
+    scroll.setWidget(native)
+    scroll.setToolTip(label.tooltip or "")
+    return scroll
+
+
 class JobPanel:
     """Progress bar, Cancel button and status line of a widget's long operation.
 

@@ -40,7 +40,7 @@ from ..core.pipeline import process_frame
 from ..core.stages.contrast import ContrastParams
 from ..core.stages.dynamic_range import DynamicRangeParams
 from ._controls import param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker, scroll_long_readout
 from ._layers import LivePreviewMixin, debounced, show_layer_steps
 from ._registry import register_stage_widget
 
@@ -180,6 +180,7 @@ class ContrastWidget(LivePreviewMixin, Container):
         self._readout = readout_label()
         super().__init__(widgets=[self._image, self._kind, *self._sliders.values(), self._live, self._apply,
                                   *self._job.widgets, self._readout, self._restore])
+        scroll_long_readout(self._readout)  # a long result scrolls, the window keeps its size
         self._base = defaults  # keeps the fields without a slider (and the other sections)
         self._prepared: tuple | None = None  # (key, PreparedInput)
         self.last_preview_s: float | None = None

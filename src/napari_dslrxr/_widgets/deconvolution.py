@@ -29,7 +29,7 @@ from ..core.param_fields import field_info
 from ..core.params import DeblurParams
 from ..core.psf import load_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker, scroll_long_readout
 from ._layers import LivePreviewMixin, debounced, robust_limits, show_layer_steps, viewer_camera, visible_region
 from ._registry import register_stage_widget
 
@@ -143,6 +143,7 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         super().__init__(widgets=[self._image, self._kernel_layer, self._psf_file, self._sod, self._sdd,
                                   self._method, self._reg, self._auto, self._live, self._apply, *self._job.widgets,
                                   self._readout, self._restore])
+        scroll_long_readout(self._readout)  # a long result scrolls, the window keeps its size
         self.result: np.ndarray | None = None
         self.last_preview: dict | None = None
         self._trigger_preview = debounced(self, self.update_preview, _DEBOUNCE_MS)

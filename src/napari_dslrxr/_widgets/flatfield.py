@@ -21,7 +21,7 @@ from ..core.errors import ParameterError
 from ..core.stages.flatfield import FlatFieldParams, apply_flat_field, prepare_flat_reference, saturated_flat_message
 from ..core.io import read_image
 from ._controls import param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, job_done, notify_error, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, notify_error, readout_label, run_in_worker, scroll_long_readout
 from ._layers import debounced, remove_layer, robust_limits, same_geometry, show_layer, show_layer_steps
 from ._registry import register_stage_widget
 
@@ -83,6 +83,7 @@ class FlatFieldWidget(Container):
         super().__init__(widgets=[self._image, self._flat, self._flat_file, self._dark, self._dark_file,
                                   self._smoothing, self._min_fraction, self._clean, self._preview,
                                   self._apply, *self._job.widgets, self._readout, self._restore])
+        scroll_long_readout(self._readout)  # a long result scrolls, the window keeps its size
         self._extra: dict = {}
         self.result: np.ndarray | None = None
         self._worker = None

@@ -21,7 +21,7 @@ from magicgui.widgets import ComboBox, Container, PushButton, create_widget
 from ..core.errors import ParameterError
 from ..core.stages.impulse import ImpulseParams, ImpulseResult, remove_impulses
 from ._controls import param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker, scroll_long_readout
 from ._layers import robust_limits, same_geometry, show_layer_steps
 from ._registry import register_stage_widget
 
@@ -93,6 +93,7 @@ class ImpulseWidget(Container):
         self._readout = readout_label()
         super().__init__(widgets=[self._image, self._space, *self._passes.values(), self._window,
                                   self._spots, self._run_button, *self._job.widgets, self._readout, self._restore])
+        scroll_long_readout(self._readout)  # a long result scrolls, the window keeps its size
         self._extra: dict = {}
         self.result: ImpulseResult | None = None
         self._run_button.changed.connect(self.run)

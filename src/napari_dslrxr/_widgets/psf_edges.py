@@ -28,7 +28,7 @@ from ..core.psf.fit_params import EdgeFitSettings
 from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
-from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker
+from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker, scroll_long_readout
 from ._layers import finish_steps, show_layer_steps
 from ._plots import ShownFigureMixin, render_figure, worker_plot
 
@@ -171,6 +171,7 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
         super().__init__(widgets=[self._image, self._sod, self._sdd, self._draw, self._pitch, self._shape,
                                   self._status, self._fit, *self._job.widgets, self._readout, self._path,
                                   self._save, self._restore])
+        scroll_long_readout(self._readout)  # a long result scrolls, the window keeps its size
         self.model: PSFModel | None = None
         self.edges_used: list[tuple[str, tuple[int, int, int, int]]] = []
         self._plot = worker_plot(self, PLOT_HEIGHT_PX, self._readout, "the fitted edge profiles")

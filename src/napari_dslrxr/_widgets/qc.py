@@ -22,7 +22,7 @@ from magicgui.widgets import ComboBox, Container, FileEdit, Label, PushButton, S
 from ..core.errors import ParameterError
 from ..core.qc import DetectorQuality, QcParams, measure_detector_quality, write_qc_outputs
 from ._controls import param_widget, restore_defaults_button
-from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker
+from ._jobs import JobPanel, ReportButtonsMixin, guarded, readout_label, run_in_worker, scroll_long_readout
 from ._layers import reset_choices, single_channel_layers
 from ._plots import ShownFigureMixin, render_figure, worker_plot
 from .psf_edges import edge_roi_layer, rectangles_to_rois, roi_layer_name
@@ -148,6 +148,7 @@ class QCWidget(ShownFigureMixin, ReportButtonsMixin, Container):
         report = _row(self._write, self._open, self._restore)
         super().__init__(widgets=[layers, self._edge, self._beam, self._kerma, self._pitch, self._roi_size, actions,
                                   *self._job.widgets, self._readout, self._report_dir, report])
+        scroll_long_readout(self._readout)  # a long result scrolls, the window keeps its size
         self.result: DetectorQuality | None = None
         self.report_paths: dict[str, Path] = {}
         self._input_names: list[str] = []
