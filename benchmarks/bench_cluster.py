@@ -100,9 +100,11 @@ def _peak_rss_mb(pid: int) -> float | None:
     return None
 
 
-def _role(pid: int, root: int) -> str:
+def _role(pid: int, root: int, parent_role: str | None = None) -> str:
     if pid == root:
         return "command"
+    if parent_role == "fork server":  # a LocalCluster's worker forked from it (same command line)
+        return "dask worker"
     try:
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
     except OSError:
@@ -116,36 +118,52 @@ def _role(pid: int, root: int) -> str:
 
 class _ProcessSampler(threading.Thread):
     """Samples the CPU time of a process and all its descendants every ``interval`` seconds;
-    keeps each process's last figures (so a process's last interval may be missed)."""
+    keeps each process's last figures (so a process's last interval may be missed). New
+    descendants are looked for in all of ``/proc`` every ``scan_every`` samples only: the scan
+    reads every process's stat (about 7 ms with 100 processes: 7 % of a core at every sample,
+    taken from the runs measured, the parallel ones most); a process found late keeps its CPU
+    time (the kernel's counts are totals) and misses only its first cells of the timeline."""
 
-    def __init__(self, root: int, interval: float = 0.1):
+    def __init__(self, root: int, interval: float = 0.1, scan_every: int = 10):
         super().__init__(daemon=True)
         self.root, self.interval, self.seen, self.done = root, interval, {}, threading.Event()
+        self.scan_every = scan_every
         self.runnable: list[tuple[float, int]] = []  # (seconds since start, threads running or runnable)
         self.cpu: list[tuple[float, dict[int, float]]] = []  # (seconds since start, CPU s so far per process)
         self.t0 = time.perf_counter()
 
+    def _descendants(self) -> set[int]:
+        parents = {}
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                stat = _proc_stat(int(entry))
+                if stat is not None:
+                    parents[int(entry)] = stat[0]
+        family = {self.root}
+        grew = True
+        while grew:  # descendants of the root
+            grew = False
+            for pid, ppid in parents.items():
+                if ppid in family and pid not in family:
+                    family.add(pid)
+                    grew = True
+        return family
+
     def run(self) -> None:
+        family: set[int] = set()
+        sample = 0
         while not self.done.is_set():
-            stats = {}
-            for entry in os.listdir("/proc"):
-                if entry.isdigit():
-                    stat = _proc_stat(int(entry))
-                    if stat is not None:
-                        stats[int(entry)] = stat
-            family = {self.root}
-            grew = True
-            while grew:  # descendants of the root
-                grew = False
-                for pid, (ppid, *_) in stats.items():
-                    if ppid in family and pid not in family:
-                        family.add(pid)
-                        grew = True
+            if sample % self.scan_every == 0:
+                family = self._descendants()
+            sample += 1
+            stats = {pid: stat for pid in family if (stat := _proc_stat(pid)) is not None}
+            family = {self.root} | stats.keys()  # the ended ones go
             now = time.perf_counter() - self.t0
-            self.runnable.append((now, sum(map(_runnable_threads, family & stats.keys()))))
-            self.cpu.append((now, {pid: stats[pid][1] + stats[pid][2] for pid in family & stats.keys()}))
-            for pid in family & stats.keys():
-                role = self.seen.get(pid, {}).get("role") or _role(pid, self.root)
+            self.runnable.append((now, sum(map(_runnable_threads, stats))))
+            self.cpu.append((now, {pid: stats[pid][1] + stats[pid][2] for pid in stats}))
+            for pid in sorted(stats):  # a fork server (its role seen first) before the workers it forked
+                parent_role = self.seen.get(stats[pid][0], {}).get("role")
+                role = self.seen.get(pid, {}).get("role") or _role(pid, self.root, parent_role)
                 _, user, system, faults = stats[pid]
                 peak = _peak_rss_mb(pid) or self.seen.get(pid, {}).get("peak_rss_mb", 0.0)
                 self.seen[pid] = {"role": role, "user_s": user, "system_s": system, "minor_faults": faults,

@@ -439,3 +439,49 @@ def test_the_dask_internals_of_the_fast_stop_are_still_there():
 
     assert "self.process = " in inspect.getsource(Nanny)
     assert "self.stopped = asyncio.Event()" in inspect.getsource(WorkerProcess)
+
+
+def _worker_state() -> dict:
+    """In a task (a worker's thread, as a file runs): its native threads, the page faults of a second
+    200 MB array after a first one, and its parent process."""
+    import resource
+
+    import cv2
+
+    big = np.ones(25_000_000)
+    del big
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    again = np.ones(25_000_000)
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+    del again
+    return {"cv2_threads": cv2.getNumThreads(), "faults": faults, "parent": os.getppid()}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's heap settings, the fork server")
+def test_local_workers_are_forked_with_the_pipeline_imported_and_keep_the_heap_and_thread_settings():
+    """The workers come from a fork server that imported the pipeline (once, not once per
+    worker) and ends with the cluster, and they still get the heap settings (a second large array reuses the first one's memory,
+    in the task's thread) and one native thread each for two workers on this machine."""
+    from napari_dslrxr._cli.cluster import connect, native_threads_per_process
+
+    def modules_before_any_task():
+        return "napari_dslrxr.core.files" in sys.modules and "cv2" in sys.modules
+
+    environ = dict(os.environ)  # dask's nanny sets the workers' variables in this process's environment
+    try:
+        with connect("local", 2) as client:
+            client.wait_for_workers(2, timeout=120)
+            imported = client.run(modules_before_any_task)  # in each worker's event loop, before any task
+            states = [client.submit(_worker_state, pure=False, workers=[address]).result(timeout=120)
+                      for address in client.scheduler_info()["workers"]]
+    finally:
+        os.environ.clear()
+        os.environ.update(environ)
+    assert list(imported.values()) == [True, True], imported
+    server = states[0]["parent"]
+    assert {state["parent"] for state in states} == {server} and server != os.getpid()  # the fork server
+    # it ended with the cluster and was reaped (its CPU time counts in the command's)
+    assert not Path(f"/proc/{server}").exists()
+    for state in states:
+        assert state["cv2_threads"] == native_threads_per_process(2), state
+        assert state["faults"] < 10, state

@@ -157,6 +157,15 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
         # every server (scheduler, nannies, workers) checks its event loop's health 50 times a
         # second, only to log a warning when it lagged: with 2 workers about 5 % of a core
         settings["distributed.admin.tick.interval"] = "1s"
+        # the nannies' and workers' memory checks (psutil, 10 times a second each, for the kill at
+        # 95 % of a worker's limit and the pause at 80 %), their system monitors (dashboard figures
+        # twice a second) and the scheduler's work stealing (10 times a second; a batch's tasks take
+        # seconds): once a second, or every two for the figures
+        settings.update({"distributed.worker.memory.monitor-interval": "1s",
+                         "distributed.admin.system-monitor.interval": "2s",
+                         "distributed.scheduler.work-stealing-interval": "1s"})
+        start_method = _worker_start_method()
+        settings["distributed.worker.multiprocessing-method"] = start_method
         # set while the cluster lives: its workers start in the background and read them then
         with dask.config.set(settings):
             with _interruptions_deferred() as interrupted:
@@ -179,6 +188,8 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
                 _stop_idle_workers(cluster)
             finally:
                 cluster.close()
+                if start_method == "forkserver":
+                    _stop_fork_server()
         return
     if not os.environ.get("DSLRXR_DEBUG"):  # a lost scheduler gets one line from us, not its tracebacks
         for name in ("distributed", *(n for n in logging.root.manager.loggerDict if n.startswith("distributed."))):
@@ -192,6 +203,38 @@ def connect(scheduler: str, n_workers: int) -> Iterator:
     finally:
         with contextlib.suppress(Exception):
             client.close(timeout=5)
+
+
+#: The modules a LocalCluster's worker imports to run files: imported once, by the fork server its
+#: workers are forked from, rather than by each worker started afresh (about 1.5 s of CPU time each).
+WORKER_MODULES = ("distributed", "napari_dslrxr._cli.cluster", "napari_dslrxr.core.files",
+                  "napari_dslrxr.core.stages.impulse", "napari_dslrxr.core.stages.contrast")
+
+
+def _worker_start_method() -> str:
+    """How a LocalCluster starts its worker processes: forked from a fork server that imported
+    :data:`WORKER_MODULES` (where the platform has one), else started afresh ('spawn').
+
+    The fork server is started by the first worker's start, after the nanny has set the workers'
+    environment (:data:`~.file_job.HEAP_ENVIRON`, the native libraries' threads), so it and every
+    worker forked from it read them; it is single-threaded when it forks. dask's own fork-server
+    set-up would import pandas and lz4 into the command, to check they exist, and have the server
+    import them: ``distributed.utils._forkserver_preload_set`` (a dask internal, tested in
+    tests/_cli/test_cluster.py) tells it the list is set."""
+    import multiprocessing
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return "spawn"
+    import distributed.utils
+
+    if not hasattr(distributed.utils, "_forkserver_preload_set"):
+        return "spawn"  # dask changed how it sets up the fork server: keep its default
+    # '__main__': the command's main module, which each worker would import again otherwise
+    # and last, the server's fast exit (:mod:`.fork_server`)
+    multiprocessing.get_context("forkserver").set_forkserver_preload(
+        ["__main__", *WORKER_MODULES, "napari_dslrxr._cli.fork_server"])
+    distributed.utils._forkserver_preload_set = True
+    return "forkserver"
 
 
 #: Seconds a LocalCluster's first worker may take to start before the run stops with one line.
@@ -227,6 +270,19 @@ def _stop_idle_workers(cluster) -> None:
 
     with contextlib.suppress(Exception):  # cluster.close() stops whatever is left
         cluster.sync(stop)
+
+
+def _stop_fork_server() -> None:
+    """End the fork server the LocalCluster's workers were forked from, once they are stopped, and
+    reap it: it ends with the command's batch, not after the command (a pipe reading the command's
+    output waits for it, about 0.8 s more on a loaded machine), and its CPU time and its workers'
+    count in the command's. The next LocalCluster of this process starts a new one, with the
+    environment of its time. ``ForkServer._stop`` is the standard library's own (for its tests;
+    tested in tests/_cli/test_cluster.py)."""
+    from multiprocessing import forkserver
+
+    with contextlib.suppress(Exception):
+        forkserver._forkserver._stop()
 
 
 def _short(exc: BaseException) -> str:
