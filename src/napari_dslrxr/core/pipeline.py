@@ -267,9 +267,6 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     results["collimation"] = {"detected": False}
     step = max(1, int(np.sqrt(attenuation.size / 1_000_000)))
     sub = attenuation[::step, ::step] if params.output.polarity == "bone_white" else -attenuation[::step, ::step]
-    def oriented_full() -> np.ndarray:
-        return attenuation if params.output.polarity == "bone_white" else -attenuation
-
     if region.evidence.get("field_edge") and "candidate_xy" in region.evidence:
         # the screen step found a strong straight edge inside the exposed screen: a blade's only
         # when nearly all of the band beyond it (98 %) is denser than 95 % of the field, so at
@@ -298,7 +295,9 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
                                                      strict=True):
                     if len(blades) > 1 and np.allclose(b1, a2):
                         shadow |= _beyond_side((h, w), b1, b1 + 2.0 * float(np.hypot(h, w)) * o1, o2)
-                combined = _with_light_beyond_blades(mask & ~shadow, mask & shadow, oriented_full(), mask & field_mask)
+                combined = _with_light_beyond_blades(
+                    mask & ~shadow, mask & shadow,
+                    attenuation if params.output.polarity == "bone_white" else -attenuation, mask & field_mask)
                 results["collimation"] = {"detected": True, "source": "screen candidate",
                                           "polygon_xy": polygon.round(2).tolist(), "blades": len(blades),
                                           "refused_edges": refused}

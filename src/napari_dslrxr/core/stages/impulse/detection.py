@@ -973,7 +973,7 @@ def _scintillator_tint(channels: np.ndarray, block_px: int = 8) -> np.ndarray:
     import cv2
 
     h, w = channels.shape[:2]
-    image = channels.astype(np.float32)
+    image = np.asarray(channels, dtype=np.float32)  # no copy of a float32 frame (24 Mpx: 288 MB)
     small = cv2.resize(image, (max(w // block_px, 2), max(h // block_px, 2)),
                        interpolation=cv2.INTER_AREA).astype(np.float64)
     diffs = np.concatenate([(small[:, 1:] - small[:, :-1]).reshape(-1, 3),
