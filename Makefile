@@ -28,12 +28,13 @@ system-deps:
 demo: $(VENV)/.installed-core
 	$(BIN)/python -m napari_dslrxr.demo demo_output
 
+# -n auto: one pytest worker per core (pytest-xdist); each GUI worker gets its own virtual display
 test: $(VENV)/.installed-test system-deps
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n auto
 
 # Headless core only: no display, no Qt.
 test-core: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -m "not gui" -p no:xvfb
+	$(BIN)/python -m pytest -n auto -m "not gui" -p no:xvfb
 
 bench: $(VENV)/.installed-test
 	$(BIN)/python benchmarks/run_all.py
