@@ -235,7 +235,7 @@ def _with_light_beyond_blades(kept: np.ndarray, shadow: np.ndarray, oriented: np
         return kept
     count, labels = cv2.connectedComponents((kept | light).astype(np.uint8), connectivity=8)
     joined = np.zeros(count, bool)
-    joined[np.unique(labels[kept])] = True
+    joined[labels[kept]] = True
     joined[0] = False
     return kept | (light & joined[labels])
 

@@ -1052,7 +1052,7 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
         # (label, pixel) pairs within reach of each compact patch, other pulses left out
         ddr, ddc = _window_offsets(2 * reach_px + 1)
         near = _flat_indices(rows, cols, ddr, ddc, (h, w))
-        pairs = np.unique(sub_label[:, None].astype(np.int64) * size + near)
+        pairs = _sorted_unique(sub_label[:, None].astype(np.int64) * size + near)
         pix = pairs % size
         outside = ~_in_sorted(pix, pulse_set)
         return pairs[outside] // size, pix[outside]
