@@ -39,12 +39,16 @@ def _apply_affine(state: ChainState, p: dict) -> None:
     if scale == 0.0 and rot == 0.0:
         return
     g = state.grid
-    gy, gx = state.light_gradient()
     xs = g.x * g.half_size_px  # pixels from the image centre
     ys = g.y * g.half_size_px
-    dx = scale * xs - rot * ys
-    dy = scale * ys + rot * xs
-    # light - (gx dx + gy dy), in place in the new arrays (this runs at every model evaluation)
+    _displace(state, scale * xs - rot * ys, scale * ys + rot * xs)
+
+
+def _displace(state: ChainState, dx: np.ndarray, dy: np.ndarray) -> None:
+    """Move the light by a displacement field of a fraction of a pixel, to first order:
+    ``light - (∇light · δ)``, computed in place in ``dx`` and ``dy`` (new arrays the caller
+    gives up; this runs at every model evaluation)."""
+    gy, gx = state.light_gradient()
     np.multiply(gx, dx, out=dx)
     np.multiply(gy, dy, out=dy)
     np.add(dx, dy, out=dx)
@@ -131,13 +135,10 @@ def _apply_keystone(state: ChainState, p: dict) -> None:
     if tx == 0.0 and ty == 0.0:
         return
     g = state.grid
-    gy, gx = state.light_gradient()
     # the first-order projective map of a plane seen at a small tilt: the local scale changes
     # linearly across the field, δ(q) = (tx·x + ty·y)·q (x, y in half-field units, q in px)
     local_scale = tx * g.x + ty * g.y
-    dx = local_scale * (g.x * g.half_size_px)
-    dy = local_scale * (g.y * g.half_size_px)
-    state.light = state.light - (gx * dx + gy * dy)
+    _displace(state, local_scale * (g.x * g.half_size_px), local_scale * (g.y * g.half_size_px))
 
 
 KEYSTONE = PhysicsTerm(
