@@ -14,8 +14,8 @@ rows/columns  ``Σ_b (Σz/√n)_b² ~ χ²(B)`` per row / column              ba
                                                                        line-to-line part passes
 radius        same, 32 radial bins                                     radial
 intensity     same, 48 quantile bins of the expected intensity         intensity structure
-ripple        max over trial periods P of the LS sin/cos fit of ``z``   intensity ripple
-              on the expected intensity ``μ`` (DN), each ``χ²(2)``;     (period ~P DN)
+ripple        max over trial periods P of the LS sin/cos fit of ``z`` intensity ripple
+              on the expected intensity ``μ`` (DN), each ``χ²(2)``;   (period ~P DN)
               columns weighted by the noise's attenuation of a ripple
               in the recorded value, ``exp(-2π²σ²/P²)/σ``; a smooth
               trend in ``μ`` projected out; Bonferroni over the periods
