@@ -1,6 +1,6 @@
 """Study of the mismatch diagnosis on recordings from an independent generator.
 
-``python benchmarks/study_diagnosis.py [--seeds dev|heldout] [--only PREFIX] [--limit N]``
+``python benchmarks/study_diagnosis.py [--seeds dev|heldout|heldout2] [--only PREFIX] [--limit N]``
 
 Recordings come from ``independent_generator.py`` (its own renderer and noise; nothing of the
 project's forward model). Cases (about 100 per seed set):
@@ -16,8 +16,11 @@ project's forward model). Cases (about 100 per seed set):
 Each case's scene (geometry, object, start values) is what a user would state; the diagnosis
 gets the recording and the scene and nothing else. Results go to
 ``benchmarks/results/diagnosis_study_<seeds>.jsonl`` and a markdown table to
-``benchmarks/results/diagnosis_study_<seeds>.md``. The ``dev`` seeds were used while
-developing; ``heldout`` seeds were run once, at the end.
+``benchmarks/results/diagnosis_study_<seeds>.md``. The ``dev`` seeds (1-100) were used while
+developing; the ``heldout`` seeds (50001-50100) were run once at the end of the work that built
+the diagnosis, and again after later changes, so they are now seen: their ADC ripple failure
+led to the intensity-ripple test, which was developed on ``dev`` only. ``heldout2`` (seeds
+90001-90100, never used before session 24) was run once, at the end of that work.
 """
 
 from __future__ import annotations
@@ -59,7 +62,7 @@ LADDER = (5.0, 10.0, 15.0, 25.0, 50.0)
 OUTSIDE_LADDER = (10.0, 20.0, 40.0)
 PAIRS = (("heel_effect", "veiling_glare"), ("vignetting", "detector_gamma"), ("scatter", "mirror_ghost"),
          ("beam_hardening", "lens_distortion"), ("inverse_square", "focal_spot_shape"))
-SEED_BASE = {"dev": 0, "heldout": 50_000}
+SEED_BASE = {"dev": 0, "heldout": 50_000, "heldout2": 90_000}
 
 
 def _geometry_for(name: str, strength: float, geometry: gen.Geometry) -> gen.Geometry:

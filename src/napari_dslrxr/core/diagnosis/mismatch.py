@@ -422,10 +422,12 @@ def _final_checks(setup: _Setup, problem: Problem, search: _Search, located: dic
     q0 = orthonormal(fit.jac, np.linalg.norm(fit.jac, axis=0).max(), 1e-9)
     smooth_dbic, smooth_map = smooth_term_delta_bic(z_final, mask, q0, cgrid)
     radius = np.sqrt(((cgrid.x**2 + cgrid.y**2) / 2.0) * np.ones(setup.y.shape))
+    noise_sd = np.sqrt(problem.noise.variance(mu, fit.layout.unpack(fit.x)[0]["offset_dn"]))
     structure = structure_tests(z_final, mask, fit.chi2, problem.n_effective - len(fit.x), mu,
                                 signed_edge_distance(setup.thickness), radius, tile, binning,
                                 noise_samples=problem.noise.n_samples,
-                                min_ghost_lag=3 if problem.noise.is_white else noise_mod.SHORT_LAG_PX + 2)
+                                min_ghost_lag=3 if problem.noise.is_white else noise_mod.SHORT_LAG_PX + 2,
+                                noise_sd_dn=noise_sd)
     # A keystone (tilted camera or screen) is too weak for lens distortion to pass before the
     # generic warps judge it, yet clear in a 2-parameter test: its projected score on the final
     # residual (exact for its linear parameters) against the acceptance criterion of a term

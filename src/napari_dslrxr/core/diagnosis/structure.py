@@ -13,7 +13,12 @@ rows/columns  ``Σ_b (Σz/√n)_b² ~ χ²(B)`` per row / column              ba
                                                                        variation when the
                                                                        line-to-line part passes
 radius        same, 32 radial bins                                     radial
-intensity     same, 48 quantile bins of the expected intensity         intensity ripple
+intensity     same, 48 quantile bins of the expected intensity         intensity structure
+ripple        max over trial periods P of the LS sin/cos fit of ``z`` intensity ripple
+              on the expected intensity ``μ`` (DN), each ``χ²(2)``;   (period ~P DN)
+              columns weighted by the noise's attenuation of a ripple
+              in the recorded value, ``exp(-2π²σ²/P²)/σ``; a smooth
+              trend in ``μ`` projected out; Bonferroni over the periods
 edge          same, signed distance to edges (±30 px)                  edge-distance
 tiles         per-tile mean ``Σz/√n`` (:func:`flagged_regions`)       localised
 periodic      max periodogram ordinate / local level (> 3 cycles)  periodic
@@ -29,7 +34,14 @@ import numpy as np
 
 from .locating import _quantile_edges
 
-N_TESTS = 10
+N_TESTS = 11
+#: Intensity-ripple test: slowest trial period as a fraction of the expected-intensity span,
+#: frequency-grid oversampling relative to 1 / span, and cosines of the smooth trend in the
+#: expected intensity projected out first (periods down to about span / 4: the binned
+#: intensity test's business, and a detector non-linearity's).
+RIPPLE_MAX_PERIOD_FRACTION = 0.25
+RIPPLE_OVERSAMPLE = 4.0
+RIPPLE_SMOOTH_COSINES = 8
 #: Gaussian widths (fitted-grid pixels) of the spot test's matched filters.
 SPOT_SIGMAS_PX = (1.5, 3.0)
 
@@ -141,6 +153,75 @@ def _periodogram_test(z: np.ndarray, mask: np.ndarray, min_cycles: float = 3.0):
     return p, peak, (float(fy[iy, 0]), float(fx[0, ix]))
 
 
+def _intensity_ripple_test(z: np.ndarray, expected_dn: np.ndarray, noise_sd_dn: np.ndarray | None,
+                           binning: int = 1, chunk: int = 64):
+    """Periodogram of the residual against the expected intensity (an ADC ripple, a periodic
+    differential non-linearity of the read-out).
+
+    A ripple ``A sin(2π x / P)`` of the *recorded* value ``x`` acts after the noise: its mean at
+    expected intensity ``μ`` is the ripple smoothed by the noise, ``A exp(-2π²σ²/P²) sin(2πμ/P)``
+    (σ the per-pixel noise, recording DN), i.e. ``A exp(-2π²σ²/P²) / σ_fit`` in prewhitened
+    units — a 97 DN ripple survives only where the noise is below ~30 DN (dark regions). For
+    each trial frequency the two columns ``g(μ) cos(2πμ/P)``, ``g(μ) sin(2πμ/P)`` with that
+    weight ``g`` are fitted to ``z`` by least squares after projecting out a smooth trend in
+    ``μ`` (:data:`RIPPLE_SMOOTH_COSINES` cosines over the span); the explained sum of squares is
+    exactly χ²(2) for white unit-variance ``z`` (any fixed design), whatever the weights. The
+    p-value is the Bonferroni bound over every trial frequency (oversampled, so conservative).
+    Trial periods run from where the attenuation at the least noisy pixels (0.5 % quantile)
+    reaches ``e^-2`` (never below 4 DN) to :data:`RIPPLE_MAX_PERIOD_FRACTION` of the span.
+
+    Everything is a function of ``μ`` alone, so the sums are taken once per fine intensity bin
+    (width 1/16 of the shortest period: a phase error below π/16).
+    Returns (p, max statistic, period at the maximum in DN, number of trial frequencies).
+    """
+    from scipy import special
+
+    mu = np.asarray(expected_dn, dtype=float)
+    lo, hi = float(mu.min()), float(mu.max())
+    span = hi - lo
+    if noise_sd_dn is None:
+        sd_fit = np.ones_like(mu)
+        f_max = 0.25
+    else:
+        sd_fit = np.maximum(np.asarray(noise_sd_dn, dtype=float), 1e-12)
+        sd_min = float(np.quantile(sd_fit, 0.005)) * binning
+        f_max = min(0.25, 1.0 / (np.pi * max(sd_min, 1e-12)))  # exp(-2π² f² σ²) = e^-2
+    f_min = 1.0 / (RIPPLE_MAX_PERIOD_FRACTION * span) if span > 0 else np.inf
+    if not f_max > 2.0 * f_min:
+        return 1.0, 0.0, float("nan"), 0
+    freqs = np.arange(f_min, f_max, 1.0 / (RIPPLE_OVERSAMPLE * span))
+    width = 1.0 / (16.0 * f_max)
+    k = ((mu - lo) / width).astype(np.intp)
+    occupied, k = np.unique(k, return_inverse=True)
+    counts = np.bincount(k).astype(float)
+    sums = np.bincount(k, weights=z)
+    sd_bin = np.bincount(k, weights=sd_fit) / counts
+    level = lo + (occupied + 0.5) * width
+    smooth = np.cos(np.pi * np.outer((level - lo) / span, np.arange(RIPPLE_SMOOTH_COSINES)))
+    q, _ = np.linalg.qr(smooth * np.sqrt(counts)[:, None])  # orthonormal under the pixel counts
+    z_bins = sums / np.sqrt(counts)  # pixel-space inner products with bin-constant columns
+    stats = np.empty(len(freqs))
+    for i0 in range(0, len(freqs), chunk):
+        f = freqs[i0:i0 + chunk, None]
+        gain = (np.exp(-2.0 * np.pi**2 * f**2 * (sd_bin * binning) ** 2) if noise_sd_dn is not None
+                else np.ones((len(f), 1))) / sd_bin
+        phase = 2.0 * np.pi * f * level
+        cols = np.stack([gain * np.cos(phase), gain * np.sin(phase)], axis=1)  # (chunk, 2, bins)
+        # the columns off the smooth trend, as pixel-count-weighted bin values
+        root = cols * np.sqrt(counts)
+        root = root - (root @ q) @ q.T
+        b = root @ z_bins
+        gram = root @ root.transpose(0, 2, 1)
+        det = gram[:, 0, 0] * gram[:, 1, 1] - gram[:, 0, 1] ** 2
+        ok = det > 1e-9 * gram[:, 0, 0] * gram[:, 1, 1]
+        quad = (gram[:, 1, 1] * b[:, 0] ** 2 - 2 * gram[:, 0, 1] * b[:, 0] * b[:, 1]
+                + gram[:, 0, 0] * b[:, 1] ** 2)
+        stats[i0:i0 + chunk] = np.where(ok, quad / np.where(ok, det, 1.0), 0.0)
+    i = int(np.argmax(stats))
+    p = min(1.0, len(freqs) * float(special.chdtrc(2, stats[i])))
+    return p, float(stats[i]), float(1.0 / freqs[i]), len(freqs)
+
+
 def _autocorrelation_test(z: np.ndarray, mask: np.ndarray, min_lag: int = 3, max_lag: int = 32):
     from scipy import special
 
@@ -204,11 +285,13 @@ def _spot_test(z: np.ndarray, mask: np.ndarray, sigmas_px=SPOT_SIGMAS_PX):
 def structure_tests(z: np.ndarray, mask: np.ndarray, chi2: float, n_effective: float,
                     expected_dn: np.ndarray, signed_edge_px: np.ndarray, radius: np.ndarray,
                     tile: int, binning: int, alpha: float = 1e-3, noise_samples: int = 0,
-                    min_ghost_lag: int = 3) -> dict:
+                    min_ghost_lag: int = 3, noise_sd_dn: np.ndarray | None = None) -> dict:
     """Run every test on the prewhitened residual; return per-test results and signatures.
 
     Positions in the output (rows, columns, edge distance, regions, lags, periods) are in
-    recording pixels (fitted-grid pixels × ``binning``).
+    recording pixels (fitted-grid pixels × ``binning``). ``noise_sd_dn``: the noise model's
+    standard deviation per fitted-grid pixel (DN), for the intensity-ripple test's attenuation
+    weights (without it the test is unweighted).
     """
     h, w = z.shape
     rows, cols = np.broadcast_arrays(np.arange(h)[:, None], np.arange(w)[None, :])
@@ -228,13 +311,18 @@ def structure_tests(z: np.ndarray, mask: np.ndarray, chi2: float, n_effective: f
             ("rows", rows[mask].astype(float), np.arange(h + 1) - 0.5, "row banding"),
             ("columns", cols[mask].astype(float), np.arange(w + 1) - 0.5, "column banding"),
             ("radius", radius[mask], np.linspace(0, radius.max() + 1e-9, 33), "radial structure"),
-            ("intensity", expected_dn[mask], _quantile_edges(expected_dn[mask], 48), "intensity ripple"),
+            ("intensity", expected_dn[mask], _quantile_edges(expected_dn[mask], 48),
+             "structure in the expected intensity"),
             ("edge_distance", signed_edge_px[mask], np.arange(-30.5, 31.5, max(2.0, binning)) / binning,
              "structure at a fixed distance from edges")):
         p, stat, where = _profile_test(values, zm, edges)
         if name in ("rows", "columns", "edge_distance"):
             where = where * binning
         tests[name] = {"p": p, "stat": stat, "where": where, "signature": signature}
+    p, stat, period, n_freq = _intensity_ripple_test(
+        zm, expected_dn[mask], None if noise_sd_dn is None else noise_sd_dn[mask], binning)
+    tests["intensity_ripple"] = {"p": p, "stat": stat, "period_dn": period, "n_periods": n_freq,
+                                 "signature": "intensity ripple"}
     # mean test only: a small dark region's variance rests on few flat pixels, and a noise
     # level misestimated there is not a missing physical effect
     regions = flagged_regions(z, mask, tile, binning, alpha=level, variance_test=False)
@@ -261,6 +349,8 @@ def structure_tests(z: np.ndarray, mask: np.ndarray, chi2: float, n_effective: f
             text += f" (strongest at {name[:-1]} {t['where']:.0f})"
         elif name == "intensity":
             text += f" (strongest at {t['where']:.0f} DN)"
+        elif name == "intensity_ripple":
+            text += f" (period ~{t['period_dn']:.0f} DN)"
         elif name == "edge_distance":
             text += f" (strongest {t['where']:+.0f} px from edges)"
         elif name == "tiles":
