@@ -192,8 +192,11 @@ def _intensity_ripple_test(z: np.ndarray, expected_dn: np.ndarray, noise_sd_dn: 
     freqs = np.arange(f_min, f_max, 1.0 / (RIPPLE_OVERSAMPLE * span))
     width = 1.0 / (16.0 * f_max)
     k = ((mu - lo) / width).astype(np.intp)
-    occupied, k = np.unique(k, return_inverse=True)
-    counts = np.bincount(k).astype(float)
+    # the occupied bins, numbered in order (numpy 2's hash-based np.unique: 15x the time)
+    per_bin = np.bincount(k)
+    occupied = np.flatnonzero(per_bin)
+    k = (np.cumsum(per_bin > 0) - 1)[k]
+    counts = per_bin[occupied].astype(float)
     sums = np.bincount(k, weights=z)
     sd_bin = np.bincount(k, weights=sd_fit) / counts
     level = lo + (occupied + 0.5) * width
