@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import resource
+import shutil
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -56,3 +59,17 @@ def record(name: str, values: dict) -> Path:
     path.write_text(json.dumps(values, indent=2) + "\n")
     print(json.dumps({name: values}, indent=2))
     return path
+
+
+def rerun_under_xvfb(script: str, name: str, args: list[str]) -> int | None:
+    """For a benchmark that needs a display: ``None`` when there is one (run here); else the
+    exit code of ``script`` re-run under ``xvfb-run`` (a skip recorded as ``name`` when there
+    is no xvfb-run either)."""
+    if os.environ.get("DISPLAY") or os.environ.get("_DSLRXR_UNDER_XVFB") == "1":
+        return None
+    if shutil.which("xvfb-run") is None:
+        record(name, {"skipped": "no X display and no xvfb-run"})
+        return 0
+    env = {**os.environ, "_DSLRXR_UNDER_XVFB": "1"}
+    return subprocess.call(["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", sys.executable, script, *args],
+                           env=env)

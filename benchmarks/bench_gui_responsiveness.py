@@ -35,15 +35,13 @@ import bisect
 import collections
 import gc
 import os
-import shutil
-import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _harness import load_test_module, peak_rss_mb, record  # noqa: E402
+from _harness import load_test_module, peak_rss_mb, record, rerun_under_xvfb  # noqa: E402
 
 TARGET_JOB_BLOCK_S = 0.100
 REPEATS = 2
@@ -295,13 +293,9 @@ def measure(where: Path | None = None) -> dict:
 
 def main() -> int:
     where = Path(sys.argv[sys.argv.index("--where") + 1]).resolve() if "--where" in sys.argv else None
-    if not os.environ.get("DISPLAY") and os.environ.get("_DSLRXR_UNDER_XVFB") != "1":
-        if shutil.which("xvfb-run") is None:
-            record("gui_responsiveness", {"skipped": "no X display and no xvfb-run"})
-            return 0
-        env = {**os.environ, "_DSLRXR_UNDER_XVFB": "1"}
-        return subprocess.call(["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", sys.executable, __file__,
-                                *sys.argv[1:]], env=env)
+    code = rerun_under_xvfb(__file__, "gui_responsiveness", sys.argv[1:])
+    if code is not None:
+        return code
     record("gui_responsiveness", measure(where))
     return 0
 

@@ -19,15 +19,13 @@ Runs under the current X display, else re-runs itself under ``xvfb-run``.
 from __future__ import annotations
 
 import os
-import shutil
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _harness import record  # noqa: E402
+from _harness import record, rerun_under_xvfb  # noqa: E402
 
 N_ADDS = 12
 BUDGET_MS = 100.0
@@ -40,10 +38,11 @@ def _settle(app, seconds: float = 0.3) -> None:
         time.sleep(0.01)
 
 
-def _timed(action) -> tuple[float, float]:
+def _timed(action):
+    """``action()``'s result and its (wall, GUI-thread CPU) time in ms."""
     wall, cpu = time.perf_counter(), time.thread_time()
-    action()
-    return round((time.perf_counter() - wall) * 1e3, 1), round((time.thread_time() - cpu) * 1e3, 1)
+    result = action()
+    return result, (round((time.perf_counter() - wall) * 1e3, 1), round((time.thread_time() - cpu) * 1e3, 1))
 
 
 def measure() -> dict:
@@ -61,14 +60,14 @@ def measure() -> dict:
     runs = {"add_ms": [], "first_draw_ms": [], "redraw_ms": []}
     for i in range(N_ADDS):
         data = rng.random((128, 256), dtype=np.float32)
-        holder = {}
-        runs["add_ms"].append(_timed(lambda: holder.setdefault(
-            "layer", viewer.add_image(data, name=f"result {i}", visible=False, contrast_limits=(0.0, 1.0)))))
+        layer, took = _timed(lambda: viewer.add_image(data, name=f"result {i}", visible=False,
+                                                      contrast_limits=(0.0, 1.0)))
+        runs["add_ms"].append(took)
         _settle(app)
-        holder["layer"].visible = True
-        runs["first_draw_ms"].append(_timed(canvas.repaint))
+        layer.visible = True
+        runs["first_draw_ms"].append(_timed(canvas.repaint)[1])
         _settle(app)
-        runs["redraw_ms"].append(_timed(canvas.repaint))
+        runs["redraw_ms"].append(_timed(canvas.repaint)[1])
         _settle(app)
     renderer = gloo.gl.glGetParameter(gloo.gl.GL_RENDERER)
     viewer.close()
@@ -86,13 +85,9 @@ def measure() -> dict:
 
 
 def main() -> int:
-    if not os.environ.get("DISPLAY") and os.environ.get("_DSLRXR_UNDER_XVFB") != "1":
-        if shutil.which("xvfb-run") is None:
-            record("napari_add_layer", {"skipped": "no X display and no xvfb-run"})
-            return 0
-        env = {**os.environ, "_DSLRXR_UNDER_XVFB": "1"}
-        return subprocess.call(["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", sys.executable, __file__],
-                               env=env)
+    code = rerun_under_xvfb(__file__, "napari_add_layer", sys.argv[1:])
+    if code is not None:
+        return code
     record("napari_add_layer", measure())
     return 0
 
