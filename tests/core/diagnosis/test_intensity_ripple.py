@@ -86,3 +86,23 @@ def test_constant_intensity_has_no_ripple_test():
     z = np.random.default_rng(4).standard_normal(SHAPE)
     p, stat, period, n = _intensity_ripple_test(z.ravel(), np.full(z.size, 1000.0), None)
     assert (p, n) == (1.0, 0)
+
+
+def test_phase_profile_shows_the_ripple_and_stays_flat_on_noise():
+    # the report's evidence: the residual folded on the intensity's phase at the found period
+    from napari_dslrxr.core.diagnosis.structure import ripple_phase_profile
+
+    expected_dn, sd_dn = _scene()
+    rng = np.random.default_rng(1)
+    analog_dn = expected_dn + sd_dn * rng.standard_normal(SHAPE)
+    recorded_dn = analog_dn + 2.0 * np.sin(2 * np.pi * analog_dn / 97.0)
+    rippled = ripple_phase_profile(((recorded_dn - expected_dn) / sd_dn).ravel(), expected_dn.ravel(),
+                                   sd_dn.ravel(), 1, 97.0)
+    noise = [ripple_phase_profile(np.random.default_rng(700 + seed).standard_normal(SHAPE).ravel(),
+                                  expected_dn.ravel(), sd_dn.ravel(), 1, 97.0) for seed in range(10)]
+    # Σ bin_z² is χ²(16) under the null: 39.3 is its 0.1 % point
+    assert len(rippled["bin_z"]) == 16 and np.sum(np.square(rippled["bin_z"])) > 39.3, rippled["bin_z"]
+    assert all(np.sum(np.square(n["bin_z"])) < 39.3 for n in noise)
+    # the folded means follow a sine of the phase: positive near a quarter, negative near three
+    phase, mean_z = np.array(rippled["centre"]), np.array(rippled["mean_z"])
+    assert np.corrcoef(mean_z, np.sin(2 * np.pi * phase))[0, 1] > 0.8

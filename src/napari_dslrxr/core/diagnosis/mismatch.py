@@ -45,7 +45,7 @@ from .fitting import BASE_FREE, Layout, Problem, orthonormal
 from .locating import checkerboard, multiscale_maps, residual_profiles, signed_edge_distance, \
     smooth_term_delta_bic
 from .result import AddedTerm, DiagnosisOptions, DiagnosisResult
-from .structure import flagged_regions, structure_tests
+from .structure import flagged_regions, ripple_phase_profile, structure_tests
 from .terms import GENERIC_SIGNATURE, KEYSTONE, REGISTRATION
 
 __all__ = ["AddedTerm", "BASE_FREE", "DiagnosisOptions", "DiagnosisResult", "auto_binning", "diagnose",
@@ -447,6 +447,14 @@ def _final_checks(setup: _Setup, problem: Problem, search: _Search, located: dic
         unexplained_regions.append([int(max(0, r - tile) * binning), int(max(0, c - tile) * binning),
                                     int(min(sm.shape[0], r + tile) * binning),
                                     int(min(sm.shape[1], c + tile) * binning)])
+    profiles_final = residual_profiles(z_final, mask, setup.thickness, mu, cgrid, binning)
+    profiles_base = located["profiles"]
+    if "intensity_ripple" in structure["failed"]:  # its evidence, before and after, for the report
+        period = structure["tests"]["intensity_ripple"]["period_dn"]
+        profiles_base = {**profiles_base, "ripple_phase": ripple_phase_profile(
+            located["z"][mask], mu[mask], noise_sd[mask], binning, period)}
+        profiles_final["ripple_phase"] = ripple_phase_profile(z_final[mask], mu[mask], noise_sd[mask],
+                                                              binning, period)
     final_base = fit.layout.unpack(fit.x)[0]
     unexplained, message = _compose_message(search.added, structure, search.generic_signature, binning,
                                             _blur_sigma_px(final_base, cgrid))
@@ -460,8 +468,7 @@ def _final_checks(setup: _Setup, problem: Problem, search: _Search, located: dic
         noise_read_dn=float(np.sqrt(problem.noise.read_variance) * binning),
         base_params=located["base_params"], final_base_params=dict(final_base),
         z_base=located["z"].astype(np.float32), z_final=z_final.astype(np.float32), mask=mask,
-        profiles_base=located["profiles"],
-        profiles_final=residual_profiles(z_final, mask, setup.thickness, mu, cgrid, binning),
+        profiles_base=profiles_base, profiles_final=profiles_final,
         rankings=search.rankings, binning=binning, n_pixels=problem.n, smooth_delta_bic=float(smooth_dbic),
         message=message, registration=_registration_report(fit.layout, fit.x, binning), noise=noise_json,
         structure=structure, signatures=([search.generic_signature] if search.generic_signature else [])

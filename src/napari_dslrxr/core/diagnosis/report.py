@@ -32,6 +32,7 @@ PROFILE_LABELS = {
     "columns": "column (px)",
     "rows": "row (px)",
     "thickness_mm": "thickness (mm)",
+    "ripple_phase": "intensity phase at the ripple's period",
 }
 
 
@@ -69,6 +70,8 @@ def profiles_figure(result: DiagnosisResult, keys: Iterable[str] = ("edge_distan
     from matplotlib.figure import Figure
 
     keys = list(keys)
+    if "ripple_phase" in result.profiles_final and "ripple_phase" not in keys:
+        keys.append("ripple_phase")  # the evidence of a reported intensity ripple
     fig = Figure(figsize=(4.0 * len(keys), 3.4))
     axes = np.atleast_1d(fig.subplots(1, len(keys)))
     for ax, key in zip(axes, keys):
@@ -78,7 +81,10 @@ def profiles_figure(result: DiagnosisResult, keys: Iterable[str] = ("edge_distan
                 ax.plot(prof["centre"], prof["bin_z"], style, ms=3, label=label)
         ax.axhspan(-3, 3, color="0.9", zorder=0)
         ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlabel(PROFILE_LABELS.get(key, key), fontsize=8)
+        label = PROFILE_LABELS.get(key, key)
+        if key == "ripple_phase":
+            label += f" ({result.structure['tests']['intensity_ripple']['period_dn']:.0f} DN)"
+        ax.set_xlabel(label, fontsize=8)
         ax.set_ylabel("bin z = Σz/√n", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.legend(fontsize=7)

@@ -153,6 +153,26 @@ def _periodogram_test(z: np.ndarray, mask: np.ndarray, min_cycles: float = 3.0):
     return p, peak, (float(fy[iy, 0]), float(fx[0, ix]))
 
 
+def ripple_visibility(frequency_per_dn, noise_sd_dn):
+    """The share of a ripple of the recorded value (frequency in cycles per DN) left in its mean
+    at one expected intensity, under Gaussian noise of ``noise_sd_dn`` (recording DN):
+    ``exp(-2π² f² σ²)``."""
+    return np.exp(-2.0 * np.pi**2 * frequency_per_dn**2 * noise_sd_dn**2)
+
+
+def ripple_phase_profile(z: np.ndarray, expected_dn: np.ndarray, noise_sd_dn: np.ndarray, binning: int,
+                         period_dn: float, n_bins: int = 16) -> dict:
+    """The residual folded on the phase of the expected intensity at ``period_dn`` (a profile
+    as :func:`~.locating.residual_profiles` gives), over the pixels where a ripple of that period
+    keeps at least ``e^-1`` of itself (elsewhere the noise has averaged it out and the pixels
+    only add noise): the evidence the report shows for an intensity ripple."""
+    from .locating import _binned_profile
+
+    visible = ripple_visibility(1.0 / period_dn, noise_sd_dn * binning) >= np.exp(-1.0)
+    phase = np.mod(expected_dn[visible], period_dn) / period_dn
+    return _binned_profile(phase, z[visible], np.linspace(0.0, 1.0, n_bins + 1))
+
+
 def _intensity_ripple_test(z: np.ndarray, expected_dn: np.ndarray, noise_sd_dn: np.ndarray | None,
                            binning: int = 1, chunk: int = 64):
     """Periodogram of the residual against the expected intensity (an ADC ripple, a periodic
@@ -206,7 +226,7 @@ def _intensity_ripple_test(z: np.ndarray, expected_dn: np.ndarray, noise_sd_dn: 
     stats = np.empty(len(freqs))
     for i0 in range(0, len(freqs), chunk):
         f = freqs[i0:i0 + chunk, None]
-        gain = (np.exp(-2.0 * np.pi**2 * f**2 * (sd_bin * binning) ** 2) if noise_sd_dn is not None
+        gain = (ripple_visibility(f, sd_bin * binning) if noise_sd_dn is not None
                 else np.ones((len(f), 1))) / sd_bin
         phase = 2.0 * np.pi * f * level
         cols = np.stack([gain * np.cos(phase), gain * np.sin(phase)], axis=1)  # (chunk, 2, bins)
