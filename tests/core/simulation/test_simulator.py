@@ -124,3 +124,32 @@ def test_cfa_option_applies_rggb_plane_gains(scene_file):
     signal = truth["expected"] - scene.offset_dn
     assert signal[0::2, 0::2].mean() == pytest.approx(0.15 * signal[0::2, 1::2].mean(), rel=1e-6)
     assert signal[1::2, 1::2].mean() == pytest.approx(0.10 * signal[1::2, 0::2].mean(), rel=1e-6)
+
+
+def _direct_binned_model(thickness, grid, pre_blur_px, base, terms=()):
+    """The model at one parameter point on a fresh ChainModel: its first transmission is always
+    computed directly on the fine grid (no series)."""
+    return ChainModel(thickness, grid, pre_blur_px).expected(base, list(terms))
+
+
+@pytest.mark.parametrize("relative_change", [1e-7, 0.01, -0.2, 0.45, 1.0])
+def test_binned_model_series_in_mu_equals_the_direct_transmission(relative_change):
+    # A binned fit evaluates many attenuations: after the first, the coarse transmission and the
+    # scatter source come from a series in mu. They must equal the direct fine-grid blur and
+    # block average at every mu (near and far from the series' centre, where a new one is made).
+    from napari_dslrxr.core.simulation.physics_terms import ChainGrid, get_term
+
+    rng = np.random.default_rng(7)
+    thickness = phantom_thickness_mm((96, 96)) + rng.uniform(0.0, 2.0, (96, 96))  # no two pixels alike
+    grid = ChainGrid((24, 24), 4, 0.2, 0.2, 1200.0)
+    base = {"offset_dn": 100.0, "gain_dn": 3000.0, "mu_per_mm": 0.08, "detector_sigma_mm": 0.3,
+            "focal_spot_sigma_mm": 0.1}
+    scatter = [(get_term("scatter"), {"amplitude": 0.3, "sigma_mm": 2.0})]
+    model = ChainModel(thickness, grid, 0.6)
+    model.expected(base, scatter)  # the first mu: direct
+    moved = {**base, "mu_per_mm": base["mu_per_mm"] * (1.0 + relative_change)}
+    for point in (moved, base, moved):  # the series, there and back
+        through_series = model.expected(point, scatter)
+        direct = _direct_binned_model(thickness, grid, 0.6, point, scatter)
+        assert model._expansion is not None  # the series made this one, not the direct path
+        np.testing.assert_allclose(through_series, direct, rtol=1e-12, atol=0.0)
