@@ -99,7 +99,8 @@ def cr_scores(shared_data, tmp_path_factory):
         display, results = _run(source, tmp_path_factory.mktemp(name))
         windowed, _ = _run(source, tmp_path_factory.mktemp(f"{name}_plain"), "-c", str(plain))
         image = read_image(source).data.astype(np.float32)
-        field = detect_collimation(image)
+        # the exposed field as the pipeline shutters it: past the blades' penumbra
+        field = detect_collimation(image, drop_penumbra=True)
         shown = eval_contrast.stretch(image, field.mask)
         crop = eval_contrast.inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
         patch = eval_contrast.find_flat_patch(shown, crop=crop)
@@ -136,7 +137,7 @@ def test_chest_dicom_gains_contrast_with_less_noise_than_clahe(cr_scores):
 
 
 @pytest.mark.parametrize("name, measured", [("RG1_UNCR", "2.81 -> 3.21 (window alone 2.74), noise 1.19 vs 1.34"),
-                                            ("RG3_UNCR", "3.01 -> 3.41 (window alone 3.26), noise 1.37 vs 1.53")])
+                                            ("RG3_UNCR", "3.00 -> 3.40 (window alone 3.26), noise 1.36 vs 1.54")])
 def test_cr_anatomy_gains_contrast_with_less_noise_than_clahe(cr_scores, name, measured):
     """GCF on the largest box of anatomy only (no direct exposure): it rises, with less noise than CLAHE.
 
@@ -156,9 +157,10 @@ def test_leg_whole_field_shortfall_is_the_beam_and_the_skin_line(cr_scores):
     The stretched input spends its darkest ~15 % of the display on the direct exposure beside
     the leg (its noise and glow, then a step up to the thinnest tissue at the skin); the
     display path shows the beam black and gives that range to the anatomy. Measured (parts of
-    the box's GCF, ``core.metrics.gcf_by_region``): anatomy 1.90 -> 1.99, direct exposure
-    0.28 -> 0.17, the superpixels on the skin line 0.93 -> 0.77 (before the thinnest tissue
-    was lifted off black: 2.10, 0.13, 0.72).
+    the box's GCF, ``core.metrics.gcf_by_region``, the box inside the blades' penumbra):
+    anatomy 2.04 -> 2.14, direct exposure 0.29 -> 0.19, the superpixels on the skin line
+    0.82 -> 0.68 (with the box to the blades' steepest point, before the penumbra was
+    shuttered: 1.90 -> 1.99, 0.28 -> 0.17, 0.93 -> 0.77).
     """
     parts = cr_scores["RG3_UNCR"]["gcf_parts"]
     (anatomy_in, beam_in, outline_in), (anatomy_ours, beam_ours, outline_ours) = parts["input"], parts["ours"]
@@ -182,10 +184,12 @@ def test_leg_skin_line_shows_grey_against_a_black_beam(cr_scores):
 def test_leg_whole_field_loses_only_what_the_black_beam_takes(cr_scores):
     """The display shows direct exposure black (what a radiologist reads a limb against), so on
     the whole exposed field, 41 % of it beam, the leg's GCF stays a little below the stretched
-    input's, which shows the beam dark grey with its noise and glow (measured 2.94 vs 3.11): the
+    input's, which shows the beam dark grey with its noise and glow (measured 3.01 vs 3.16; 2.94
+    vs 3.11 with the blades' penumbra in the box, shown as a grey line before it was shuttered): the
     contrast target is met over the anatomy (test above; docs/safety.md, "The GCF target is over
     the anatomy"). Asserted here: the whole field loses no more than that, the beam black; a
     display that flattened the anatomy or greyed the beam would fail one of the bounds."""
     score, skin = cr_scores["RG3_UNCR"], cr_scores["RG3_UNCR"]["skin"]
     assert score["gcf_ours"] > 0.93 * score["gcf_input"], score
     assert skin["beam"] <= 0.005, skin
+

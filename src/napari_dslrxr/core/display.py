@@ -277,7 +277,7 @@ def scale_display_field(image: np.ndarray, params: PipelineParams, mask: np.ndar
     x = np.asarray(image, np.float32).copy()
     field = None
     if mask is None and params.region.detect_collimation:
-        found = detect_collimation(x, inset_px=params.region.collimation_inset_px)
+        found = detect_collimation(x, inset_px=params.region.collimation_inset_px, drop_penumbra=True)
         if found.detected:
             field, mask = found, found.mask
     window = scale_to_voi_window(x, mask, params)

@@ -307,7 +307,7 @@ def _collimated_field(attenuation: np.ndarray, mask: np.ndarray, region: Region,
     if not _may_hold_blades(display_oriented, mask, factor):
         return mask, region
     inset = params.region.collimation_inset_px * min(1.0, max(h, w) / 2000.0) / factor
-    found = detect_collimation(display_oriented, inset_px=inset)
+    found = detect_collimation(display_oriented, inset_px=inset, drop_penumbra=True)
     if not found.detected:
         return mask, region
     polygon = (found.polygon_xy + 0.5) * np.array([w / small.shape[1], h / small.shape[0]]) - 0.5

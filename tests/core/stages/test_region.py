@@ -373,3 +373,112 @@ def test_a_dark_defect_of_the_flat_inside_a_frame_cut_screen_is_not_taken_for_it
     region = detect_screen(frame * dust / illumination, illumination=illumination)
     assert region.detected, region.evidence
     assert region.mask[70:91, 90:111].all(), (~region.mask[70:91, 90:111]).sum()
+
+
+def _soft_blade(rng, shape=(600, 800), blade_x=160, tail_px=5.0, sigma_px=1.2, noise=0.004):
+    """A left blade (bright, display orientation) whose edge has a steep step and then a long
+    exponential tail into a dark field (like the NEMA CR leg's blades)."""
+    h, w = shape
+    xx = np.broadcast_to(np.arange(w, dtype=np.float64), shape)
+    inside = xx - blade_x  # px into the field
+    field_level, blade_level = 0.1, 0.9
+    step = blade_level - field_level
+    # 70 % of the step drops at the edge, the last 30 % decays with ``tail_px``
+    image = np.where(inside < 0, blade_level, field_level + 0.3 * step * np.exp(-np.maximum(inside, 0) / tail_px))
+    yy = np.arange(h)[:, None]
+    # anatomy well inside the field (a blade is told from the field by the field's spread)
+    image = np.where(((xx - 0.6 * w) / (0.2 * w)) ** 2 + ((yy - h / 2) / (0.4 * h)) ** 2 < 1, 0.5, image)
+    image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma_px)
+    image += rng.normal(0, noise, shape).astype(np.float32)
+    # the image's excess over the field level, as a share of the step, along a row
+    excess = (cv2.GaussianBlur(np.where(inside < 0, blade_level, field_level + 0.3 * step * np.exp(
+        -np.maximum(inside, 0) / tail_px)).astype(np.float32), (0, 0), sigma_px)[0] - field_level) / step
+    return image * 1000, excess
+
+
+def test_drop_penumbra_moves_a_soft_blade_edge_past_its_tail(rng):
+    from napari_dslrxr.core.stages.collimation import detect_collimation
+
+    image, excess = _soft_blade(rng)
+    at_edge = detect_collimation(image)
+    dropped = detect_collimation(image, drop_penumbra=True)
+    assert at_edge.detected and dropped.detected
+    first_col = lambda region: int(np.argmax(region.mask[300]))  # first field column on a middle row
+    # at the steepest point the field starts with ~30 % of the step still to fall
+    assert excess[first_col(at_edge)] > 0.1
+    # dropped: the field starts where the tail is within about 2 % of the step (3 % with the noise)
+    assert excess[first_col(dropped)] < 0.03, (first_col(dropped), excess[first_col(dropped)])
+    # and not far beyond it: within 3 px of where the tail reaches 2 %
+    settles = int(np.argmax((excess < 0.02) & (np.arange(excess.size) > 160)))
+    assert abs(first_col(dropped) - settles) <= 3, (first_col(dropped), settles)
+    # the drop only moves edges inwards, and a configured inset larger than the tail still wins
+    assert not (dropped.mask & ~at_edge.mask).any()
+    wide = detect_collimation(image, inset_px=60.0, drop_penumbra=True)
+    assert first_col(wide) == pytest.approx(first_col(at_edge) + 60, abs=1)
+
+
+def test_drop_penumbra_barely_moves_a_sharp_blade(rng):
+    from napari_dslrxr.core.stages.collimation import detect_collimation
+
+    image, truth = _collimated_radiograph(rng, (400, 500), (60, 40, 80, 50), 3.0)
+    at_edge = detect_collimation(image)
+    dropped = detect_collimation(image, drop_penumbra=True)
+    assert not (dropped.mask & ~at_edge.mask).any()
+    # a 1.2 px blur settles to 2 % within about 2.5 px: no edge moves more than 5 px (with the noise and the mask's rounding)
+    moved = at_edge.mask & ~dropped.mask
+    distance = cv2.distanceTransform(dropped.mask.astype(np.uint8) ^ 1, cv2.DIST_L2, 5)
+    assert moved.any() and distance[moved].max() <= 5.0, distance[moved].max()
+
+
+@pytest.mark.realdata
+def test_real_cr_leg_field_starts_past_the_blades_penumbra(shared_data):
+    """NEMA CR leg (RG3): its two blades have soft edges whose faint tail, 20-30 px long, showed
+    as a grey line beside the black shutter. With the penumbra dropped, the first field pixels
+    along each blade are within a few % of the blade-to-field step of the field further in."""
+    from napari_dslrxr.core.io import read_image
+    from napari_dslrxr.core.stages.collimation import detect_collimation
+
+    data = read_image(shared_data / "cr_dicom" / "RG3_UNCR.dcm").data.astype(np.float32)
+    rows = range(200, 1600, 50)  # rows where direct beam lies beside both blades
+
+    def excess_at_edges(region, reference):
+        """Mean of the first 3 field pixels next to each blade, above the field level 60-70 px
+        further in, as a share of the blade-to-field step (levels placed from ``reference``)."""
+        out = []
+        for row in rows:
+            ref_cols, cols = np.nonzero(reference.mask[row])[0], np.nonzero(region.mask[row])[0]
+            left, right = ref_cols[0], ref_cols[-1]
+            for blade, inner, edge in (
+                    (data[row, left - 40:left - 30], data[row, left + 60:left + 70], data[row, cols[0]:cols[0] + 3]),
+                    (data[row, right + 31:right + 41], data[row, right - 69:right - 59],
+                     data[row, cols[-1] - 2:cols[-1] + 1])):
+                level, top = np.median(inner), np.median(blade)
+                out.append((edge.mean() - level) / (top - level))
+        return np.array(out)
+
+    at_edge = detect_collimation(data, inset_px=9.0)  # the pipeline's 10 px per 2000 px
+    dropped = detect_collimation(data, inset_px=9.0, drop_penumbra=True)
+    assert at_edge.detected and dropped.detected
+    assert np.median(excess_at_edges(at_edge, at_edge)) > 0.05
+    assert np.median(excess_at_edges(dropped, at_edge)) < 0.03
+    # the field loses only the penumbra: under 4 % of its width
+    assert dropped.mask.sum() > 0.92 * at_edge.mask.sum()
+
+
+def test_drop_penumbra_never_shutters_anatomy_along_a_blade(rng):
+    """A limb lying along the blade (a plateau of tissue 10 px wide, then its skin line falling
+    to the direct beam, less than half the blade's step) looks like a penumbra to a "distance
+    to the field level" rule; its second edge tells it apart, and it stays in the field."""
+    from napari_dslrxr.core.stages.collimation import detect_collimation
+
+    h, w = 600, 800
+    xx = np.broadcast_to(np.arange(w, dtype=np.float64), (h, w))
+    yy = np.arange(h)[:, None]
+    image = np.where(xx < 160, 0.9, np.where(xx < 170, 0.35, 0.1))  # blade, tissue band, beam
+    image = np.where(((xx - 480) / 160.0) ** 2 + ((yy - 300) / 240.0) ** 2 < 1, 0.5, image)  # anatomy inside
+    image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.2) + rng.normal(0, 0.004, (h, w)).astype(np.float32)
+    at_edge = detect_collimation(image * 1000)
+    dropped = detect_collimation(image * 1000, drop_penumbra=True)
+    assert at_edge.detected and dropped.detected
+    np.testing.assert_array_equal(dropped.mask, at_edge.mask)
+    assert dropped.mask[300, 162:168].all()  # the tissue band is in the field

@@ -19,6 +19,12 @@ from .region import Region, _line_intersection, _sample, polygon_mask
 _BLADE_SIDES = {"left": (0.0, -1.0), "right": (0.0, 1.0), "top": (np.pi / 2, -1.0), "bottom": (np.pi / 2, 1.0)}
 
 
+#: How far into the field (fraction of the frame's shorter side) a blade's penumbra is followed,
+#: and the widest penumbra dropped (the NEMA CR leg's blades: 1.3 and 1.9 %).
+_PENUMBRA_REACH = 0.04
+_PENUMBRA_MAX = 0.025
+
+
 def _line_samples(shape: tuple[int, int], theta: float, rho: float, step_px: float = 1.0) -> np.ndarray:
     """(x, y) points every ``step_px`` along the line x cos(theta) + y sin(theta) = rho inside a frame."""
     h, w = shape
@@ -108,8 +114,58 @@ def _refine_blade(image: np.ndarray, theta: float, rho: float, outward: float,
     return new_theta, float(x0 * np.cos(new_theta) + y0 * np.sin(new_theta))
 
 
+def _penumbra_px(image: np.ndarray, theta: float, rho: float, outward: float, reach_px: float,
+                 settled: float = 0.02) -> float:
+    """How far into the field a blade's penumbra reaches from its edge line (px).
+
+    A blade's edge is no step: past its steepest point the exposure keeps rising over tens of
+    pixels towards the field's level (a long, faint tail on clinical CR plates), and a
+    display's steep curve near the direct beam shows that tail as a grey line beside a black
+    shutter. Profiles across the line, every few pixels along it, ``reach_px`` into the field:
+    on each, the inward distance from the line at which the profile has come within
+    ``settled`` of the blade-to-field step of the field's level (the median of the profile's
+    inner half). The median over the profiles whose outside is brighter than their inside by a
+    clear step; 0 when too few are.
+    """
+    h, w = image.shape
+    normal = outward * np.array([np.cos(theta), np.sin(theta)])
+    points = _line_samples((h, w), theta, rho, step_px=max(2.0, min(h, w) / 400.0))
+    offsets = np.arange(-reach_px, 6.0)  # inward (negative) to a few px onto the blade
+    profiles = _sample(image, points[:, None, :] + offsets[None, :, None] * normal)
+    profiles = profiles[np.all(np.isfinite(profiles), axis=1)]
+    if len(profiles) < 8:
+        return 0.0
+    inner = offsets <= -reach_px / 2
+    field_level = np.median(profiles[:, inner], axis=1)
+    blade_level = np.median(profiles[:, offsets >= 3.0], axis=1)
+    step = blade_level - field_level
+    profiles, field_level, step = profiles[step > 0.1], field_level[step > 0.1], step[step > 0.1]
+    if len(profiles) < 8:
+        return 0.0
+    # walking inwards from the line (offset 0, -1, ...): the first pixel at the field's level
+    # (anatomy further in, brighter than the field, is not counted)
+    from_line = profiles[:, offsets <= 0][:, ::-1]
+    settled_px = from_line - field_level[:, None] <= settled * step[:, None]
+    reach = np.where(settled_px.any(axis=1), np.argmax(settled_px, axis=1), from_line.shape[1])
+    # A penumbra's tail falls ever more gently away from the edge; anatomy lying along the
+    # blade is a plateau that ends in a second edge (its skin line): a fall of at least a
+    # quarter of the edge's steepest after the fall had nearly stopped (a tenth). Such a
+    # profile has no penumbra to drop (its anatomy is never shuttered).
+    smooth = cv2.GaussianBlur(from_line.astype(np.float32), (1, 5), 0)  # along the line, as the edge fit
+    drop = smooth[:, :-1] - smooth[:, 1:]  # fall per px, going inwards
+    at_edge = np.maximum(drop[:, :3].max(axis=1), 1e-12)[:, None]
+    gentlest_before = np.minimum.accumulate(np.concatenate([np.full((len(drop), 1), np.inf), drop[:, :-1]], axis=1),
+                                            axis=1)
+    inside_reach = np.arange(drop.shape[1])[None, :] < reach[:, None]
+    second_edge = ((drop > 0.25 * at_edge) & (gentlest_before < 0.1 * at_edge) & inside_reach).any(axis=1)
+    reach = np.where(second_edge, 0, reach)
+    penumbra = float(np.median(reach))
+    # wider than any blade's penumbra: something else lies along the edge; leave it in the field
+    return penumbra if penumbra <= _PENUMBRA_MAX * min(h, w) else 0.0
+
+
 def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_tilt_deg: float = 10.0,
-                       min_step: float = 0.08, inset_px: float = 0.0) -> Region:
+                       min_step: float = 0.08, inset_px: float = 0.0, drop_penumbra: bool = False) -> Region:
     """Find the exposed field of a collimated radiograph (display orientation, bright = unexposed).
 
     Collimator blades leave straight-edged bands along the frame's sides where the plate got
@@ -140,6 +196,14 @@ def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_ti
     inset_px : float
         Move each found edge this many pixels into the field (>= 0): 0 keeps the edge at its
         steepest point; a few pixels drop the blade's penumbra.
+    drop_penumbra : bool
+        Move each edge further in where the blade's penumbra reaches further: to where the
+        image has come within 2 % of the blade-to-field step of the field's level (median over
+        profiles along the edge, followed up to 4 % of the frame's shorter side into the field;
+        a profile with a second steep edge inside, anatomy along the blade, counts as none, and
+        a median above 2.5 % of the shorter side is not taken for a penumbra).
+        For a display with a black shutter outside the field, where the faint tail of a soft
+        blade edge otherwise shows as a grey line.
 
     Returns
     -------
@@ -198,7 +262,10 @@ def detect_collimation(image: np.ndarray, *, analysis_size_px: int = 512, max_ti
         full_theta, full_rho = _to_full_resolution(*found, scale)
         refined = _refine_blade(full, full_theta, full_rho, outward, half_width_px=2.0 * factor + 4.0)
         theta, rho = refined if refined is not None else (full_theta, full_rho)
-        lines[side] = (theta, rho - outward * inset_px)
+        inset = inset_px
+        if drop_penumbra:
+            inset = max(inset, _penumbra_px(full, theta, rho, outward, reach_px=_PENUMBRA_REACH * min(h, w)))
+        lines[side] = (theta, rho - outward * inset)
     poly = _field_polygon(lines, (h, w)) if lines else None
     return nothing if poly is None else Region(polygon_mask((h, w), poly), poly, detected=True)
 

@@ -64,8 +64,11 @@ class RegionParams:
         and the contrast widget): find collimator blades with :func:`detect_collimation` and
         use the exposed field as the region. Camera frames ignore it (they use the screen).
     collimation_inset_px : float
-        Move each found collimator edge this many pixels into the field (0 to 200), so the
-        blade's penumbra (the soft inner side of the edge) counts as outside.
+        Move each found collimator edge at least this many pixels into the field (0 to 200), so
+        the blade's penumbra (the soft inner side of the edge) counts as outside; further where
+        the penumbra is measured to reach further (``drop_penumbra`` of
+        :func:`detect_collimation`: a soft blade's faint tail would show as a grey line beside
+        the black shutter).
     """
 
     enabled: bool = field(default=True, metadata={"help": "detect the exposed screen; false = the whole frame is the region"})
@@ -96,7 +99,8 @@ class RegionParams:
     detect_collimation: bool = field(default=True, metadata={
         "help": "display radiographs only: find collimator blades and use the exposed field as the region"})
     collimation_inset_px: float = field(default=10.0, metadata={
-        "help": "move each found collimator edge this far into the field (drops the blade's penumbra)",
+        "help": "move each found collimator edge at least this far into the field, further where the "
+                "blade's penumbra is measured to reach further (drops the penumbra under the black shutter)",
         "unit": "px", "min": 0.0, "max": 200.0})
 
     def __post_init__(self) -> None:
