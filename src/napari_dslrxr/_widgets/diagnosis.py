@@ -239,7 +239,7 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
                       for r0, c0, r1, c1 in result.regions]
         if rectangles and MISMATCH_REGIONS not in self._viewer.layers:
             yield NEXT_STEP_ADDS_LAYER
-        new = self._show_regions(rectangles, layer)
+        new = yield from self._show_regions(rectangles, layer)
         yield
         if new is not None:
             # filled a turn after it was added: its rectangles and geometry took ~15 % more
@@ -271,14 +271,14 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
                                        visible=False)
 
     def _show_regions(self, rectangles: list[np.ndarray], layer):
-        """Update the regions layer in place; or add it empty and hidden and return it, for
-        :meth:`_fill_regions` at the next turn."""
+        """Update the regions layer in place (:meth:`_update_regions`, over event-loop turns);
+        or add it empty and hidden and return it, for :meth:`_fill_regions` at the next turn."""
         from napari.layers import Shapes
 
         name = MISMATCH_REGIONS
         existing = self._viewer.layers[name] if name in self._viewer.layers else None
         if isinstance(existing, Shapes):
-            self._fill_regions(existing, rectangles, layer)
+            yield from self._update_regions(existing, rectangles, layer)
             return None
         remove_layer(self._viewer, name)
         if not rectangles:
@@ -292,6 +292,26 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         if rectangles:
             regions.add_rectangles(rectangles, edge_color="yellow", face_color="transparent", edge_width=2)
         regions.scale, regions.translate = geometry["scale"], geometry["translate"]
+
+    @staticmethod
+    def _update_regions(regions, rectangles: list[np.ndarray], layer) -> Iterator[None]:
+        """A re-run's regions into the existing layer, touching only what changed: the same
+        rectangles are left as they are, new ones replace them in one turn and the geometry
+        (when it changed) follows at the next. Emptied, refilled and re-placed in one turn
+        (each a refresh of the layer and of the layer list), then drawn, the update took
+        90-105 ms of GUI time, the diagnosis re-run's longest block."""
+        shown = regions.data
+        same = len(shown) == len(rectangles) and all(
+            np.shape(a) == np.shape(b) and np.allclose(a, b) for a, b in zip(shown, rectangles))
+        if not same or set(regions.shape_type) - {"rectangle"}:
+            regions.data = []
+            if rectangles:
+                regions.add_rectangles(rectangles, edge_color="yellow", face_color="transparent", edge_width=2)
+            yield
+        geometry = same_geometry(layer)
+        for key in ("scale", "translate"):
+            if not np.allclose(getattr(regions, key)[-2:], geometry[key]):
+                setattr(regions, key, geometry[key])
 
     @guarded("diagnosis report")
     def write(self):
