@@ -54,8 +54,12 @@ def test_hidden_glare_is_named_with_residual_layers_and_report(docked, wait_for_
         assert len(viewer.layers["mismatch regions"].data) == len(result.regions)
     # Shown again (a re-run): every layer updated in place, none removed and re-added.
     shown = list(viewer.layers)
+    refilled = []
+    if result.regions:  # the same regions again: the regions layer is left alone (no refill)
+        viewer.layers["mismatch regions"].events.data.connect(refilled.append)
     widget._show(recording, result)
     assert all(a is b for a, b in zip(viewer.layers, shown, strict=True))
+    assert not refilled
     assert list(viewer.layers["residual map labels"].features["what"]) == [
         "before (scene as given)", "after (+ veiling glare)"]
     if result.regions:

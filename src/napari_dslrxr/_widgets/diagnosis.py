@@ -331,7 +331,7 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         90-105 ms of GUI time, the diagnosis re-run's longest block."""
         shown = regions.data
         same = len(shown) == len(rectangles) and all(
-            np.shape(a) == np.shape(b) and np.allclose(a, b) for a, b in zip(shown, rectangles))
+            np.shape(a) == np.shape(b) and np.array_equal(a, b) for a, b in zip(shown, rectangles))
         if not same or set(regions.shape_type) - {"rectangle"}:
             regions.data = []
             if rectangles:
