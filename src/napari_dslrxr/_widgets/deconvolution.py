@@ -279,9 +279,6 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
             yield from show_layer_steps(self._viewer, out, f"{layer.name} deconvolved", "image", rgb=out.ndim == 3,
                                         scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]),
                                         shown=shown, **({} if out.ndim == 3 else {"contrast_limits": limits}))
-            # The read-out and the warning's notification (a new toast widget, and the
-            # window's repaint with it) at the next turn, not on top of the layer's update.
-            yield
         except BaseException:  # GeneratorExit (closed: cancelled) included
             shown.put_back()
             raise
