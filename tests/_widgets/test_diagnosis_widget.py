@@ -54,8 +54,12 @@ def test_hidden_glare_is_named_with_residual_layers_and_report(docked, wait_for_
         assert len(viewer.layers["mismatch regions"].data) == len(result.regions)
     # Shown again (a re-run): every layer updated in place, none removed and re-added.
     shown = list(viewer.layers)
+    refilled = []
+    if result.regions:  # the same regions again: the regions layer is left alone (no refill)
+        viewer.layers["mismatch regions"].events.data.connect(refilled.append)
     widget._show(recording, result)
     assert all(a is b for a, b in zip(viewer.layers, shown, strict=True))
+    assert not refilled
     assert list(viewer.layers["residual map labels"].features["what"]) == [
         "before (scene as given)", "after (+ veiling glare)"]
     if result.regions:
@@ -85,4 +89,92 @@ def test_scene_file_input_and_errors(docked, tmp_path, errors_shown, wait_for_wo
     # Shape mismatch: raised by the core inside the worker, shown as a notification.
     wait_for_worker(widget.run())
     assert "does not match" in errors_shown[-1] and widget.result is None
+    assert widget._run.enabled
+
+
+RESULT_LAYERS = ("residual z (base model)", "residual z (final model)", "residual z 4x4 (base model)",
+                 "residual z 4x4 (final model)", "residual map labels", "mismatch regions")
+
+
+def _result_layer_names(viewer) -> list[str]:
+    """The diagnosis' result layers in the viewer (duplicates as napari names them: "name [1]")."""
+    return [layer.name for layer in viewer.layers if layer.name.split(" [")[0] in RESULT_LAYERS]
+
+
+@pytest.mark.slow
+def test_cancel_while_the_result_is_shown_leaves_no_partial_layers_and_the_re_run_one_set(docked, qtbot, errors_shown):
+    """The result is shown over event-loop turns: Cancel in the middle removes the layers it
+    added so far (and no later step adds any); Diagnose is disabled while it is shown; the run
+    after the cancel shows exactly one set."""
+    from qtpy.QtCore import Qt
+
+    viewer, widget, _thickness, _recording = docked
+    widget._max_terms.value = 1
+    worker = widget.run()
+    qtbot.waitUntil(lambda: "residual z (base model)" in viewer.layers, timeout=120_000)
+    assert len(_result_layer_names(viewer)) < len(RESULT_LAYERS)  # midway
+    assert not widget._run.enabled  # a second run cannot start while it is shown
+    qtbot.mouseClick(widget._run.native, Qt.MouseButton.LeftButton)
+    assert widget._job.worker is worker
+    qtbot.mouseClick(widget._job.cancel_button.native, Qt.MouseButton.LeftButton)
+    assert _result_layer_names(viewer) == [] and widget.result is None
+    qtbot.waitUntil(lambda: worker.dslrxr_finished, timeout=10_000)
+    qtbot.wait(500)  # longer than the steps' timers: none is left to add a layer
+    assert _result_layer_names(viewer) == [] and widget.result is None
+    assert widget._run.enabled and "cancelled" in widget._job.status.value and not errors_shown
+    # run again, Diagnose clicked (it is disabled) while the result is shown: one set
+    worker = widget.run()
+    qtbot.waitUntil(lambda: "residual z (final model)" in viewer.layers, timeout=120_000)
+    qtbot.mouseClick(widget._run.native, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: worker.dslrxr_finished, timeout=30_000)
+    assert widget._job.worker is None and widget.result is not None and not errors_shown
+    assert sorted(_result_layer_names(viewer)) == sorted(RESULT_LAYERS)
+    assert viewer.layers["residual z 4x4 (final model)"].visible and viewer.layers["mismatch regions"].visible
+
+
+@pytest.mark.slow
+def test_a_re_run_cancelled_while_shown_puts_the_previous_result_back(docked, qtbot, wait_for_worker, errors_shown):
+    """Cancel while a re-run updates the result layers in place: every layer shows the
+    previous result again (its very arrays), none is removed, ``result`` is the previous one."""
+    viewer, widget, _thickness, _recording = docked
+    widget._max_terms.value = 1
+    wait_for_worker(widget.run(), timeout_ms=120_000)
+    previous = widget.result
+    layers = {name: viewer.layers[name] for name in RESULT_LAYERS}
+    data = {name: layer.data for name, layer in layers.items() if name != "mismatch regions"}
+    regions = [np.array(v) for v in layers["mismatch regions"].data]
+    labels = list(layers["residual map labels"].features["what"])
+    scales = {name: tuple(viewer.layers[name].scale) for name in data}
+    widget._binning.value = "2"  # another result: maps of half the size, twice the scale
+    worker = widget.run()
+    qtbot.waitUntil(lambda: viewer.layers["residual z (final model)"].data is not data["residual z (final model)"],
+                    timeout=120_000)
+    assert worker.dslrxr_finished is False
+    widget.cancel()
+    qtbot.waitUntil(lambda: worker.dslrxr_finished, timeout=10_000)
+    qtbot.wait(500)
+    assert list(viewer.layers)[-len(RESULT_LAYERS):] == list(layers.values()) or all(
+        viewer.layers[name] is layer for name, layer in layers.items())
+    for name, array in data.items():
+        assert viewer.layers[name].data is array and tuple(viewer.layers[name].scale) == scales[name], name
+    assert list(viewer.layers["residual map labels"].features["what"]) == labels
+    assert len(viewer.layers["mismatch regions"].data) == len(regions)
+    assert all(np.allclose(a, b) for a, b in zip(viewer.layers["mismatch regions"].data, regions))
+    assert widget.result is previous and not errors_shown
+
+
+def test_a_failing_display_step_leaves_no_partial_layers(docked, qtbot, wait_for_worker, errors_shown, monkeypatch):
+    """A step of the display that raises: a notification, the layers added so far removed,
+    the read-out and the status say it failed (not "done")."""
+    viewer, widget, _thickness, _recording = docked
+    widget._max_terms.value = 1
+
+    def broken(*_args, **_kwargs):
+        raise RuntimeError("no labels today")
+
+    monkeypatch.setattr(DiagnosisWidget, "_show_map_labels", broken)
+    wait_for_worker(widget.run(), timeout_ms=120_000)
+    assert len(errors_shown) == 1 and "no labels today" in errors_shown[0]
+    assert _result_layer_names(viewer) == [] and widget.result is None
+    assert widget._readout.value.startswith("failed") and widget._job.status.value.startswith("failed")
     assert widget._run.enabled

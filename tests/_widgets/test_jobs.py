@@ -147,3 +147,30 @@ def test_a_result_still_showing_after_the_hold_limit_gives_the_collector_back(qt
     wait_for_worker(worker)
     assert not seen[0] and seen[-1], "the collector stayed off past the hold's limit"
     assert gc.isenabled()
+
+
+def test_cancel_while_the_result_is_shown_closes_its_steps_and_no_later_step_runs(qtbot, wait_for_worker):
+    """Cancel between two display steps: the display's generator is closed at its ``yield``
+    (it can put back what it changed), no step runs after it, the job ends as cancelled."""
+    from napari_dslrxr._widgets._jobs import JobPanel
+
+    panel = JobPanel()
+    seen: list[str] = []
+
+    def show(_value):
+        try:
+            for step in range(6):
+                seen.append(f"step {step}")
+                if step == 1:
+                    panel.cancel()  # from inside a step: takes effect once it returned
+                yield
+        except GeneratorExit:
+            seen.append("closed")
+            raise
+
+    worker = run_in_worker(lambda: 1, desc="stepwise", panel=panel, on_returned=show,
+                           on_finished=lambda: seen.append("finished"))
+    wait_for_worker(worker)
+    qtbot.wait(200)  # longer than the steps' timers
+    assert seen == ["step 0", "step 1", "finished", "closed"]
+    assert worker.dslrxr_cancelled and not panel.running and "cancelled" in panel.status.value

@@ -162,7 +162,9 @@ class JobPanel:
     callback :meth:`callback`), else busy. Cancel stops a job at its next progress report
     (generator step or callback) and at once detaches it from the widget: the buttons are
     enabled again, its result is never shown (no half-made layer), and a job without progress
-    reports that is still computing is left to finish in its thread, unseen.
+    reports that is still computing is left to finish in its thread, unseen. A job whose
+    result is being shown over several event-loop turns stops showing it: the display's
+    generator is closed at its current step and puts back what it changed (``run_in_worker``).
     """
 
     #: How often the bar follows the progress the worker thread reports. Every change of the
@@ -293,8 +295,12 @@ class JobPanel:
         quit_ = getattr(worker, "quit", None)
         if quit_ is not None:
             quit_()
-        self._finish(f"{self.desc}: cancelled")
-        notify_info(f"{self.desc}: cancelled")
+        desc = self.desc
+        self._finish(f"{desc}: cancelled")
+        stop_display = getattr(worker, "dslrxr_stop_display", None)
+        if stop_display is not None:  # its result was being shown: stop, and put back what it changed
+            stop_display()
+        notify_info(f"{desc}: cancelled")
 
 
 def hold_repaints(widget: Any) -> Callable[[], None]:
@@ -395,7 +401,10 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
         under software GL), and the job counts as finished after the last step. A step that
         yields :data:`NEXT_STEP_ADDS_LAYER` announces that the next one adds a layer: the
         window's repaint after it waits a turn (:func:`hold_repaints`). Python's automatic
-        garbage collections wait until the last step (:func:`hold_collections`).
+        garbage collections wait until the last step (:func:`hold_collections`). When the job
+        is cancelled while its steps run, the generator is closed (``GeneratorExit`` at its
+        current ``yield``) and no further step runs; a generator that makes layers puts back
+        what it changed then, and when a step raises (:class:`._layers.ShownLayers`).
     on_finished : callable, optional
         Called on the GUI thread once the job is over for the widget: after success, error,
         or at once when Cancel is pressed (e.g. to re-enable a button).
@@ -445,7 +454,7 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
     outcome = {"text": f"{desc}: done"}
     # The steps of a result shown over several event-loop turns, and whether the thread's end
     # came while they ran (the job finishes after the last step).
-    showing: dict[str, Any] = {"steps": None, "finish_after": False}
+    showing: dict[str, Any] = {"steps": None, "finish_after": False, "in_step": False, "stop": False}
 
     def _returned(result: Any) -> None:
         from qtpy.QtCore import QTimer
@@ -471,21 +480,60 @@ def run_in_worker(work: Callable, *args: Any, desc: str,
         from qtpy.QtCore import QTimer
 
         steps = showing["steps"]
+        if steps is None:  # stopped (cancelled) meanwhile
+            return
         release = showing.pop("release_repaints", lambda: None)
+        showing["in_step"] = True
         try:
             if next(steps) is NEXT_STEP_ADDS_LAYER:
                 showing["release_repaints"] = hold_repaints(None if panel is None else panel.row.native)
         except StopIteration:
             steps = None
         except Exception as exc:  # noqa: BLE001 - the viewer must survive any failure
-            notify_error(exc, context=desc)
+            text = notify_error(exc, context=desc)
+            outcome["text"] = f"failed: {text}"  # not "done" in the status and the read-out
+            if readout is not None:
+                try:
+                    readout.value = f"failed: {text}"
+                except RuntimeError:
+                    pass
             steps = None
+        finally:
+            showing["in_step"] = False
+        if showing["stop"] and steps is not None:  # cancelled from inside this step
+            release()
+            _stop_display()
+            return
         QTimer.singleShot(SHOW_STEP_DELAY_MS, lambda: _repainted(release, steps is not None))
+
+    def _stop_display() -> None:
+        """Cancel while the result is shown: the steps' generator closed (it puts back what it
+        changed), no further step; the job ends."""
+        steps = showing["steps"]
+        if steps is None:
+            return
+        if showing["in_step"]:  # Cancel from inside a step (a nested event loop): after it
+            showing["stop"] = True
+            return
+        showing["steps"] = None
+        showing.pop("release_repaints", lambda: None)()
+        try:
+            steps.close()
+        except Exception as exc:  # noqa: BLE001 - the viewer must survive any failure
+            notify_error(exc, context=desc)
+        showing.pop("release_collector", lambda: None)()
+        if showing["finish_after"]:
+            showing["finish_after"] = False  # once (a step's timer may still be pending)
+            _finished()
+
+    worker.dslrxr_stop_display = _stop_display
 
     def _repainted(release: Callable[[], None], more: bool) -> None:
         from qtpy.QtCore import QTimer
 
         release()  # a held window repaints now, a turn after the step that added a layer
+        if more and showing["steps"] is None:  # stopped (cancelled) meanwhile
+            return
         if more:
             QTimer.singleShot(SHOW_STEP_DELAY_MS, _next_step)
             return

@@ -163,24 +163,101 @@ def rgb_thumbnail_from_contrast_limits(layer: napari.layers.Image) -> None:
 #: Yielded by a display step (see ``run_in_worker``) when the next step adds a layer.
 NEXT_STEP_ADDS_LAYER = "next step adds a layer"
 
+#: What :meth:`ShownLayers.updating` keeps of a layer updated in place (``show_layer`` sets
+#: these), in the order they are put back.
+_KEPT = ("data", "scale", "translate", "colormap", "opacity", "visible", "metadata", "contrast_limits_range",
+         "contrast_limits", "gamma")
+
+
+class ShownLayers:
+    """What a result's display (shown over several event-loop turns) changed so far, to put
+    back when it stops midway: cancelled (``run_in_worker`` closes the display's generator)
+    or a step raised. The layers it added are removed, the ones it updated in place get their
+    previous state back, so no half-made set of result layers is left::
+
+        shown = ShownLayers(viewer)
+        try:
+            yield from show_layer_steps(viewer, data, name, shown=shown)
+            ...
+        except BaseException:  # GeneratorExit included
+            shown.put_back()
+            raise
+    """
+
+    def __init__(self, viewer: napari.Viewer):
+        self._viewer = viewer
+        self._undo: list[Callable[[], None]] = []
+
+    def added(self, layer: napari.layers.Layer) -> None:
+        self._undo.append(lambda: self._viewer.layers.remove(layer) if layer in self._viewer.layers else None)
+
+    def updating(self, layer: napari.layers.Layer, attributes: tuple[str, ...] = _KEPT) -> None:
+        """Keep ``layer``'s ``attributes`` (before it is updated in place)."""
+        kept = {key: getattr(layer, key) for key in attributes if hasattr(layer, key)}
+        kept = {key: (value.copy() if isinstance(value, dict) else value) for key, value in kept.items()}
+
+        def restore() -> None:
+            for key, value in kept.items():
+                now = getattr(layer, key)
+                same = now is value or (key != "data" and _equal(now, value))
+                if not same:
+                    setattr(layer, key, value)
+
+        self._undo.append(restore)
+
+    def undo_with(self, restore: Callable[[], None]) -> None:
+        """Put back with ``restore()`` (a layer updated otherwise)."""
+        self._undo.append(restore)
+
+    def put_back(self) -> None:
+        """Undo everything recorded, the latest first (each undo's failure is reported)."""
+        from ._jobs import reported_errors
+
+        while self._undo:
+            with reported_errors("putting back the layers"):
+                self._undo.pop()()
+
+
+def _equal(a: Any, b: Any) -> bool:
+    if hasattr(a, "name") and hasattr(b, "name"):  # colormaps
+        return a.name == b.name
+    if isinstance(a, dict) or isinstance(b, dict):
+        return a == b
+    try:
+        return bool(np.array_equal(a, b))
+    except (TypeError, ValueError):
+        return False
+
 
 def show_layer_steps(viewer: napari.Viewer, data: np.ndarray, name: str, layer_type: str = "image",
+                     shown: ShownLayers | None = None,
                      **kwargs: Any) -> Generator[str | None, None, napari.layers.Layer]:
     """:func:`show_layer` over event-loop turns when the layer is new: announced
     (:data:`NEXT_STEP_ADDS_LAYER`), added hidden, shown at the next turn (``yield`` between
     them; for a generator ``on_returned`` of :func:`run_in_worker`). napari builds a new
     layer's controls and visual when it is added and compiles its shaders when it first
     draws it; one after the other they froze the viewer longer than either alone.
-    ``layer = yield from show_layer_steps(...)``."""
+    ``layer = yield from show_layer_steps(...)``. ``shown``: the display's record of what it
+    changed (:class:`ShownLayers`); without one, a new layer is removed again when the display
+    stops between its add and its reveal."""
+    if name not in viewer.layers:
+        yield NEXT_STEP_ADDS_LAYER
     new = name not in viewer.layers
     reveal = new and kwargs.get("visible", True)
-    if new:
-        yield NEXT_STEP_ADDS_LAYER
+    if shown is not None and not new:
+        shown.updating(viewer.layers[name])
     if reveal:
         kwargs["visible"] = False
     layer = show_layer(viewer, data, name, layer_type, **kwargs)
+    if shown is not None and new:
+        shown.added(layer)
     if reveal:
-        yield
+        try:
+            yield
+        except BaseException:
+            if shown is None and new and layer in viewer.layers:
+                viewer.layers.remove(layer)  # no hidden, half-made layer left
+            raise
         layer.visible = True
     return layer
 

@@ -30,7 +30,8 @@ from ..core.params import DeblurParams
 from ..core.psf import load_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker, scroll_long_readout
-from ._layers import LivePreviewMixin, debounced, robust_limits, show_layer_steps, viewer_camera, visible_region
+from ._layers import (LivePreviewMixin, ShownLayers, debounced, robust_limits, show_layer_steps, viewer_camera,
+                      visible_region)
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -271,11 +272,17 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
     def _show_full(self, layer, out: np.ndarray, limits: tuple[float, float], input_range: tuple[float, float],
                    out_range: tuple[float, float], params: DeconvolutionParams) -> Iterator[None]:
         """The result with display limits from its own values, and a warning when they leave
-        the input's range (ringing or over-sharpening: try a larger regularisation)."""
+        the input's range (ringing or over-sharpening: try a larger regularisation). Stopped
+        midway (Cancel), the layer is put back as it was (:class:`ShownLayers`)."""
+        shown = ShownLayers(self._viewer)
+        try:
+            yield from show_layer_steps(self._viewer, out, f"{layer.name} deconvolved", "image", rgb=out.ndim == 3,
+                                        scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]),
+                                        shown=shown, **({} if out.ndim == 3 else {"contrast_limits": limits}))
+        except BaseException:  # GeneratorExit (closed: cancelled) included
+            shown.put_back()
+            raise
         self.result = out
-        yield from show_layer_steps(self._viewer, out, f"{layer.name} deconvolved", "image", rgb=out.ndim == 3,
-                                    scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]),
-                                    **({} if out.ndim == 3 else {"contrast_limits": limits}))
         (in_lo, in_hi), (out_lo, out_hi) = input_range, out_range
         span = max(in_hi - in_lo, 1e-12)
         text = (f"deconvolved with {params.method}, reg {float(params.reg):.3g}; values {out_lo:.4g} to "

@@ -22,7 +22,7 @@ from ..core.errors import ParameterError
 from ..core.stages.impulse import ImpulseParams, ImpulseResult, remove_impulses
 from ._controls import param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, readout_label, run_in_worker, scroll_long_readout
-from ._layers import robust_limits, same_geometry, show_layer_steps
+from ._layers import ShownLayers, robust_limits, same_geometry, show_layer_steps
 from ._registry import register_stage_widget
 
 if TYPE_CHECKING:
@@ -144,15 +144,22 @@ class ImpulseWidget(Container):
                     masks: dict[str, np.ndarray], summary: str) -> Iterator[None]:
         """Show the result one layer per event-loop turn, each new one over two turns
         (:func:`show_layer_steps`: napari sets a new layer up, then draws it first, on the GUI
-        thread)."""
-        self.result = result
+        thread). Stopped midway (Cancel), the layers are put back as they were
+        (:class:`ShownLayers`)."""
         geometry = same_geometry(layer)
-        yield from show_layer_steps(self._viewer, result.image, f"{layer.name} cleaned", "image",
-                                    rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, **geometry)
-        for name, mask in masks.items():
+        shown = ShownLayers(self._viewer)
+        try:
+            yield from show_layer_steps(self._viewer, result.image, f"{layer.name} cleaned", "image",
+                                        rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, shown=shown,
+                                        **geometry)
+            for name, mask in masks.items():
+                yield
+                yield from show_layer_steps(self._viewer, mask, f"{layer.name} pulses {name}", "image",
+                                            colormap=pulse_colormap(name), contrast_limits=(0.0, 1.0), opacity=0.8,
+                                            blending="translucent", shown=shown, **geometry)
             yield
-            yield from show_layer_steps(self._viewer, mask, f"{layer.name} pulses {name}", "image",
-                                        colormap=pulse_colormap(name), contrast_limits=(0.0, 1.0), opacity=0.8,
-                                        blending="translucent", **geometry)
-        yield
+        except BaseException:  # GeneratorExit (closed: cancelled) included
+            shown.put_back()
+            raise
+        self.result = result
         self._readout.value = summary
