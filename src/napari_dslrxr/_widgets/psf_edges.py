@@ -29,7 +29,7 @@ from ..core.errors import ParameterError
 from ..core.psf import PSFModel, save_psf
 from ._controls import param_tooltip, param_widget, restore_defaults_button
 from ._jobs import JobPanel, guarded, job_done, notify_info, readout_label, run_in_worker, scroll_long_readout
-from ._layers import finish_steps, show_layer_steps
+from ._layers import ShownLayers, finish_steps, show_layer_steps
 from ._plots import ShownFigureMixin, render_figure, worker_plot
 
 if TYPE_CHECKING:
@@ -172,7 +172,8 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
                                   self._status, self._fit, *self._job.widgets, self._readout, self._path,
                                   self._save, self._restore])
         scroll_long_readout(self._readout)  # a long result scrolls, the window keeps its size
-        self.model: PSFModel | None = None
+        self.model: PSFModel | None = None  # the fit shown (read-out, kernel layer), what "Save psf.json" writes
+        self._summary: str | None = None  # its read-out
         self.edges_used: list[tuple[str, tuple[int, int, int, int]]] = []
         self._plot = worker_plot(self, PLOT_HEIGHT_PX, self._readout, "the fitted edge profiles")
         self._image.changed.connect(self._image_chosen)
@@ -278,8 +279,14 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
                              source_to_object_mm=geometry_mm[0], source_to_detector_mm=geometry_mm[1],
                              plot_size_px=None if self._plot is None else self._plot.size_px(),
                              desc="PSF edge fit", on_returned=lambda out: self._show(*out, geometry_mm),
-                             on_finished=job_done(self._fit, self._job, self._readout),
-                             panel=self._job, readout=self._readout)
+                             on_finished=self._fit_done, panel=self._job, readout=self._readout)
+
+    def _fit_done(self) -> None:
+        """The fit's job is over (any outcome): :func:`job_done`; when it showed no new result
+        (cancelled, failed) and an earlier fit is kept, the read-out says so and shows it."""
+        job_done(self._fit, self._job, self._readout)()
+        if self.model is not None and self._summary is not None and self._readout.value != self._summary:
+            self._readout.value = f"{self._readout.value}\nthe previous fit is kept:\n{self._summary}"
 
     def cancel(self) -> None:
         """Stop the running fit at its next optimiser iteration (the Cancel button)."""
@@ -287,15 +294,23 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
 
     def _show(self, model: PSFModel, kernel: np.ndarray, summary: str, plot: tuple | None,
               geometry_mm: tuple[float, float]) -> Iterator[None]:
-        """The read-out and plot, then (next event-loop turn: the widget redraws first) the
-        kernel layer."""
-        self.model = model
-        self._save.enabled = True
+        """The kernel layer (over event-loop turns when it is new: :func:`show_layer_steps`),
+        then, at the next turn, the read-out, the plot and the model ("Save psf.json").
+        Stopped midway (Cancel, or a step failed), the kernel layer is put back as it was
+        (:class:`ShownLayers`) and the read-out, plot and model stay at the previous fit, so
+        the read-out never describes a PSF the kernel layer does not show, nor is saved."""
+        shown = ShownLayers(self._viewer)
+        try:
+            yield from self._kernel_steps(model, kernel, geometry_mm, shown)
+            yield
+            if plot is not None:
+                self._plot.show(*plot)
+        except BaseException:  # GeneratorExit (closed: cancelled) included
+            shown.put_back()
+            raise
         self._readout.value = summary
-        if plot is not None:
-            self._plot.show(*plot)
-        yield
-        yield from self._kernel_steps(model, kernel, geometry_mm)
+        self.model, self._summary = model, summary
+        self._save.enabled = True
 
     def show_kernel(self, model: PSFModel, kernel: np.ndarray | None = None,
                     geometry_mm: tuple[float, float] | None = None) -> napari.layers.Image:
@@ -304,9 +319,10 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
         (SOD, SDD; default: the widget's)."""
         return finish_steps(self._kernel_steps(model, kernel, geometry_mm))
 
-    def _kernel_steps(self, model: PSFModel, kernel: np.ndarray | None,
-                      geometry_mm: tuple[float, float] | None) -> Generator[None, None, napari.layers.Image]:
-        """:meth:`show_kernel` over event-loop turns (:func:`show_layer_steps`)."""
+    def _kernel_steps(self, model: PSFModel, kernel: np.ndarray | None, geometry_mm: tuple[float, float] | None,
+                      shown: ShownLayers | None = None) -> Generator[None, None, napari.layers.Image]:
+        """:meth:`show_kernel` over event-loop turns (:func:`show_layer_steps`); ``shown``:
+        the display's record of what it changed."""
         image = self._image.value
         sod_mm, sdd_mm = geometry_mm or (float(self._sod.value), float(self._sdd.value))
         if kernel is None:
@@ -316,7 +332,7 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
             scale = tuple(np.asarray(image.scale[-2:], float))
             translate = tuple(np.asarray(image.translate[-2:], float) + np.asarray(scale) * (0, np.shape(image.data)[1] + 8))
         layer = yield from show_layer_steps(self._viewer, kernel, "PSF kernel", "image", colormap="magma",
-                                            scale=scale, translate=translate,
+                                            scale=scale, translate=translate, shown=shown,
                                             contrast_limits=(0.0, float(kernel.max())), gamma=0.4)
         layer.gamma = 0.4  # show the tail (also when an existing layer is updated)
         layer.metadata.update({SOD_KEY: sod_mm, SDD_KEY: sdd_mm,
