@@ -168,8 +168,13 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
     long (every pixel) and the parameters few (≤ ~30): ``JᵀJ`` is a
     tiny matrix, so each step costs one Jacobian, not an SVD of it. Parameters at a bound whose
     gradient points outward are held for that step. Stops when χ² improves by less than
-    ``max(1e-3, rel_tol·χ²)`` (far below what a BIC comparison resolves) or after ``max_nfev``
-    residual evaluations.
+    ``tol = max(1e-3, rel_tol·χ²)`` (far below what a BIC comparison resolves), when the
+    Gauss–Newton step's predicted improvement ``gᵀ(JᵀJ)⁻¹g`` (the most any step can gain under
+    the linearised model) is below ``tol``, or after ``max_nfev`` residual evaluations.
+
+    The damping λ is divided by 10 after a step whose gain was at least 3/4 of the quadratic
+    model's prediction (the model is good: take longer steps), by 3 after other accepted steps,
+    and multiplied by 4 after a rejected one.
     """
     x = np.clip(np.asarray(x0, float), lower, upper)
     r = fun(x)
@@ -186,6 +191,15 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
             break
         af, gf = a[np.ix_(free, free)], g[free]
         diag = np.maximum(np.diag(af), 1e-30)
+        tol = max(1e-3, rel_tol * chi2)
+        # converged: no step can gain more than the Gauss-Newton step's prediction (the trial
+        # steps at such a point only fail on rounding, each costing a model evaluation)
+        try:
+            predicted_gn = float(gf @ np.linalg.solve(af + 1e-12 * np.diag(diag), gf))
+        except np.linalg.LinAlgError:
+            predicted_gn = np.inf
+        if 0.0 <= predicted_gn < tol:
+            break
         accepted = False
         while nfev < max_nfev:
             step = np.zeros_like(x)
@@ -207,8 +221,10 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
         if not accepted:
             break
         gain = chi2 - chi2_new
+        sf = step[free]
+        predicted = -float(2.0 * gf @ sf + sf @ af @ sf)
         x, r, chi2 = x_new, r_new, chi2_new
-        lam = max(lam / 3.0, 1e-9)
+        lam = max(lam / (10.0 if gain >= 0.75 * predicted else 3.0), 1e-9)
         j = jac(x, r)
         if gain < max(1e-3, rel_tol * chi2):
             break
