@@ -222,7 +222,7 @@ def main() -> int:
         image = read_image(path).data.astype(np.float32)
         # Score inside the exposed field (the collimator band is not anatomy; ours shutters it
         # black): the same box for input, ours and CLAHE, and the input stretched within it.
-        field = detect_collimation(image)
+        field = detect_collimation(image, drop_penumbra=True)  # the field as the display shutters it
         input_display = stretch(image, field.mask)
         crop = inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
         ours = enhance_radiograph(image, PipelineParams())

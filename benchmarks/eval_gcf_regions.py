@@ -109,7 +109,7 @@ def radiograph_rows(name: str) -> dict | None:
         print(f"skipping {path}: not found")
         return None
     image = read_image(path).data.astype(np.float32)
-    field = detect_collimation(image)
+    field = detect_collimation(image, drop_penumbra=True)  # the field as the display shutters it
     crop = inner_box(field.polygon_xy, image.shape) if field.detected else np.s_[:, :]
     anatomy = anatomy_mask(image, field.mask)
     anatomy_crop = anatomy_box(image, field.mask)
