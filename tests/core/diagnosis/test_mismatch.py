@@ -294,3 +294,30 @@ def test_banding_test_restores_the_recording_when_it_fails(monkeypatch):
     with pytest.raises(MemoryError):
         mismatch._banding(setup, problem, fit)
     assert problem.y is y_in
+
+
+def test_diagnosis_runs_its_blas_on_one_thread_and_gives_the_threads_back(scene, monkeypatch):
+    """The fits' many small products run on one BLAS thread (idle OpenBLAS workers spin between
+    them, taking a core from the GUI); the process's setting is restored afterwards."""
+    from threadpoolctl import threadpool_info
+
+    from napari_dslrxr.core.diagnosis import fitting
+
+    def blas_threads() -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    import scipy.linalg  # noqa: F401  (both BLAS libraries loaded, numpy's and scipy's)
+
+    before = blas_threads()
+    seen: list[list[int]] = []
+    fit = fitting.levenberg_marquardt
+
+    def recording_fit(*args, **kwargs):
+        seen.append(blas_threads())
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(fitting, "levenberg_marquardt", recording_fit)
+    recording, _ = simulate_recording(scene, seed=3)
+    diagnose_scene(scene, recording, DiagnosisOptions(max_terms=0))
+    assert seen and all(threads and set(threads) == {1} for threads in seen), seen
+    assert blas_threads() == before
