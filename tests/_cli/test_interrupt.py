@@ -32,10 +32,18 @@ def batch(tmp_path_factory):
     return shots, write_tiff(folder / "flat.tif", frames.flat)
 
 
+def _as_a_terminal_starts_it() -> None:
+    """Ctrl-C handled as in a command a shell runs in the foreground. A test run started in the
+    background of a script (``cmd &``) hands every child SIGINT ignored, and Python keeps it so:
+    the command would then finish the whole batch (seen on a clean-clone run started that way)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt_after_first_output(shots, flat, out: Path, jobs: int, sig: int, whole_group: bool):
     run = subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", "run", *map(str, shots), "--flat", str(flat),
                             "-o", str(out), "--jobs", str(jobs)],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                           preexec_fn=_as_a_terminal_starts_it)
     deadline = time.monotonic() + 180
     while not (out.exists() and any(p.suffix == ".json" for p in out.iterdir())):
         assert time.monotonic() < deadline and run.poll() is None, "no output appeared"
