@@ -384,15 +384,14 @@ def _soft_blade(rng, shape=(600, 800), blade_x=160, tail_px=5.0, sigma_px=1.2, n
     field_level, blade_level = 0.1, 0.9
     step = blade_level - field_level
     # 70 % of the step drops at the edge, the last 30 % decays with ``tail_px``
-    image = np.where(inside < 0, blade_level, field_level + 0.3 * step * np.exp(-np.maximum(inside, 0) / tail_px))
+    edge = np.where(inside < 0, blade_level, field_level + 0.3 * step * np.exp(-np.maximum(inside, 0) / tail_px))
+    # the edge's excess over the field level, as a share of the step, along a row (noise-free)
+    excess = (cv2.GaussianBlur(edge.astype(np.float32), (0, 0), sigma_px)[0] - field_level) / step
     yy = np.arange(h)[:, None]
     # anatomy well inside the field (a blade is told from the field by the field's spread)
-    image = np.where(((xx - 0.6 * w) / (0.2 * w)) ** 2 + ((yy - h / 2) / (0.4 * h)) ** 2 < 1, 0.5, image)
+    image = np.where(((xx - 0.6 * w) / (0.2 * w)) ** 2 + ((yy - h / 2) / (0.4 * h)) ** 2 < 1, 0.5, edge)
     image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma_px)
     image += rng.normal(0, noise, shape).astype(np.float32)
-    # the image's excess over the field level, as a share of the step, along a row
-    excess = (cv2.GaussianBlur(np.where(inside < 0, blade_level, field_level + 0.3 * step * np.exp(
-        -np.maximum(inside, 0) / tail_px)).astype(np.float32), (0, 0), sigma_px)[0] - field_level) / step
     return image * 1000, excess
 
 

@@ -75,6 +75,17 @@ def _blade_score(small: np.ndarray, grid_xy: tuple[np.ndarray, np.ndarray], thet
     return coverage * float(np.median(step))
 
 
+def _profiles_across(image: np.ndarray, theta: float, rho: float, outward: float,
+                     offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Profiles of ``image`` across a line, every few pixels along it: ``(points, normal,
+    profiles)``, the (x, y) points on the line, the unit normal towards the blade and the values
+    at ``offsets`` (px along that normal) from each point (NaN outside the frame)."""
+    h, w = image.shape
+    normal = outward * np.array([np.cos(theta), np.sin(theta)])
+    points = _line_samples((h, w), theta, rho, step_px=max(2.0, min(h, w) / 400.0))
+    return points, normal, _sample(image, points[:, None, :] + offsets[None, :, None] * normal)
+
+
 def _refine_blade(image: np.ndarray, theta: float, rho: float, outward: float,
                   half_width_px: float) -> tuple[float, float] | None:
     """Move a coarse blade line onto the steepest outward step of the full-resolution image.
@@ -83,11 +94,8 @@ def _refine_blade(image: np.ndarray, theta: float, rho: float, outward: float,
     the largest outside-minus-inside derivative; a robust (Huber) line through those points.
     Returns ``(theta, rho)`` or None when too few profiles show the step.
     """
-    h, w = image.shape
-    normal = outward * np.array([np.cos(theta), np.sin(theta)])
-    points = _line_samples((h, w), theta, rho, step_px=max(2.0, min(h, w) / 400.0))
     offsets = np.arange(-half_width_px, half_width_px + 1.0)
-    profiles = _sample(image, points[:, None, :] + offsets[None, :, None] * normal)
+    points, normal, profiles = _profiles_across(image, theta, rho, outward, offsets)
     valid = np.all(np.isfinite(profiles), axis=1)
     if np.count_nonzero(valid) < 8:
         return None
@@ -128,10 +136,8 @@ def _penumbra_px(image: np.ndarray, theta: float, rho: float, outward: float, re
     clear step; 0 when too few are.
     """
     h, w = image.shape
-    normal = outward * np.array([np.cos(theta), np.sin(theta)])
-    points = _line_samples((h, w), theta, rho, step_px=max(2.0, min(h, w) / 400.0))
-    offsets = np.arange(-reach_px, 6.0)  # inward (negative) to a few px onto the blade
-    profiles = _sample(image, points[:, None, :] + offsets[None, :, None] * normal)
+    offsets = np.arange(-np.ceil(reach_px), 6.0)  # whole px from the line: inward (negative) to a few onto the blade
+    profiles = _profiles_across(image, theta, rho, outward, offsets)[2]
     profiles = profiles[np.all(np.isfinite(profiles), axis=1)]
     if len(profiles) < 8:
         return 0.0
