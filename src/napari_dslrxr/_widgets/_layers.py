@@ -3,6 +3,7 @@ of an image, and the live preview's mechanics (one worker at a time, debounced t
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Generator, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -176,12 +177,9 @@ class ShownLayers:
     previous state back, so no half-made set of result layers is left::
 
         shown = ShownLayers(viewer)
-        try:
+        with shown.put_back_if_stopped():
             yield from show_layer_steps(viewer, data, name, shown=shown)
             ...
-        except BaseException:  # GeneratorExit included
-            shown.put_back()
-            raise
     """
 
     def __init__(self, viewer: napari.Viewer):
@@ -208,6 +206,16 @@ class ShownLayers:
     def undo_with(self, restore: Callable[[], None]) -> None:
         """Put back with ``restore()`` (a layer updated otherwise)."""
         self._undo.append(restore)
+
+    @contextlib.contextmanager
+    def put_back_if_stopped(self) -> Iterator[ShownLayers]:
+        """Around a display's steps: when they stop midway (the generator closed by Cancel:
+        ``GeneratorExit`` at a ``yield``; or a step raised), :meth:`put_back`, then re-raise."""
+        try:
+            yield self
+        except BaseException:
+            self.put_back()
+            raise
 
     def put_back(self) -> None:
         """Undo everything recorded, the latest first (each undo's failure is reported)."""

@@ -275,13 +275,10 @@ class DeconvolutionWidget(LivePreviewMixin, Container):
         the input's range (ringing or over-sharpening: try a larger regularisation). Stopped
         midway (Cancel), the layer is put back as it was (:class:`ShownLayers`)."""
         shown = ShownLayers(self._viewer)
-        try:
+        with shown.put_back_if_stopped():
             yield from show_layer_steps(self._viewer, out, f"{layer.name} deconvolved", "image", rgb=out.ndim == 3,
                                         scale=tuple(layer.scale[-2:]), translate=tuple(layer.translate[-2:]),
                                         shown=shown, **({} if out.ndim == 3 else {"contrast_limits": limits}))
-        except BaseException:  # GeneratorExit (closed: cancelled) included
-            shown.put_back()
-            raise
         self.result = out
         (in_lo, in_hi), (out_lo, out_hi) = input_range, out_range
         span = max(in_hi - in_lo, 1e-12)

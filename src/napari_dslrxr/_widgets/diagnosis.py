@@ -206,11 +206,8 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         the ones it added are removed, the ones it updated get their previous state back
         (:class:`ShownLayers`), and ``result`` stays the previous one."""
         shown = ShownLayers(self._viewer)
-        try:
+        with shown.put_back_if_stopped():
             yield from self._show_steps_recorded(layer, result, binned, shown)
-        except BaseException:  # GeneratorExit (closed: cancelled) included
-            shown.put_back()
-            raise
 
     def _show_steps_recorded(self, layer, result: DiagnosisResult, binned: dict[str, np.ndarray] | None,
                              shown: ShownLayers) -> Iterator[None]:
@@ -329,9 +326,9 @@ class DiagnosisWidget(ReportButtonsMixin, Container):
         (when it changed) follows at the next. Emptied, refilled and re-placed in one turn
         (each a refresh of the layer and of the layer list), then drawn, the update took
         90-105 ms of GUI time, the diagnosis re-run's longest block."""
-        shown = regions.data
-        same = len(shown) == len(rectangles) and all(
-            np.shape(a) == np.shape(b) and np.array_equal(a, b) for a, b in zip(shown, rectangles))
+        current = regions.data
+        same = len(current) == len(rectangles) and all(
+            np.shape(a) == np.shape(b) and np.array_equal(a, b) for a, b in zip(current, rectangles))
         if not same or set(regions.shape_type) - {"rectangle"}:
             regions.data = []
             if rectangles:

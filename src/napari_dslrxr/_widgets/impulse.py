@@ -148,7 +148,7 @@ class ImpulseWidget(Container):
         (:class:`ShownLayers`)."""
         geometry = same_geometry(layer)
         shown = ShownLayers(self._viewer)
-        try:
+        with shown.put_back_if_stopped():
             yield from show_layer_steps(self._viewer, result.image, f"{layer.name} cleaned", "image",
                                         rgb=bool(getattr(layer, "rgb", False)), contrast_limits=limits, shown=shown,
                                         **geometry)
@@ -158,8 +158,5 @@ class ImpulseWidget(Container):
                                             colormap=pulse_colormap(name), contrast_limits=(0.0, 1.0), opacity=0.8,
                                             blending="translucent", shown=shown, **geometry)
             yield
-        except BaseException:  # GeneratorExit (closed: cancelled) included
-            shown.put_back()
-            raise
         self.result = result
         self._readout.value = summary

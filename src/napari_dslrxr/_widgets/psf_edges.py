@@ -300,14 +300,11 @@ class PSFEdgeWidget(ShownFigureMixin, Container):
         (:class:`ShownLayers`) and the read-out, plot and model stay at the previous fit, so
         the read-out never describes a PSF the kernel layer does not show, nor is saved."""
         shown = ShownLayers(self._viewer)
-        try:
+        with shown.put_back_if_stopped():
             yield from self._kernel_steps(model, kernel, geometry_mm, shown)
             yield
             if plot is not None:
                 self._plot.show(*plot)
-        except BaseException:  # GeneratorExit (closed: cancelled) included
-            shown.put_back()
-            raise
         self._readout.value = summary
         self.model, self._summary = model, summary
         self._save.enabled = True
