@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from napari_dslrxr.core.diagnosis import DiagnosisOptions, diagnose_scene
-from napari_dslrxr.core.diagnosis.structure import N_TESTS, _spot_test, structure_tests
+from napari_dslrxr.core.diagnosis.structure import N_TESTS, _greedy_spots, _spot_test, \
+    out_of_library_alternatives, structure_tests
 from napari_dslrxr.core.diagnosis.terms import additive_twin
 from napari_dslrxr.core.simulation.physics_terms import get_term
 from napari_dslrxr.core.simulation.simulator import ChainModel, simulate_recording
@@ -130,6 +131,46 @@ def test_spot_test_ignores_the_frame_border_where_prewhitening_is_inexact():
     z = rng.standard_normal((256, 256))
     z[:, 0] *= 4.0
     assert _spot_test(z, np.ones(z.shape, bool))[0] > 1e-3 / N_TESTS
+
+
+def test_spot_alternative_fits_each_spot_once_and_gains_their_chi2():
+    # three dark spots of matched-filter SNR 12, 15 and 20 (Δχ² 144, 225, 400) in white noise
+    rng = np.random.default_rng(21)
+    shape = (160, 160)
+    mask = np.ones(shape, bool)
+    mask[70:80, 20:40] = False
+    centres, snrs = [(30, 40), (100, 120), (130, 50)], [12.0, 15.0, 20.0]
+    z = rng.standard_normal(shape)
+    for centre, snr in zip(centres, snrs):
+        spot = _spot_field(shape, [centre], 3.0)
+        z -= snr * spot / np.sqrt(np.sum(spot**2))
+    log_n = np.log(mask.sum())
+    spots, chi2 = _greedy_spots(np.where(mask, z, 0.0), mask, 4.0 * log_n + 10.0)
+    assert len(spots) == 3, spots
+    for centre in centres:  # each found once, within a pixel or two
+        assert sum(np.hypot(r - centre[0], c - centre[1]) <= 2.0 for r, c in spots) == 1, spots
+    assert 0.85 * 769 < chi2 < 1.15 * 769 + 60, chi2  # Σ snr² plus the noise the fits take
+    zero = np.zeros(shape)
+    alternatives = {a.name: a for a in out_of_library_alternatives(np.where(mask, z, 0.0), mask, zero + 1000.0
+                                                                    + np.arange(shape[1]), zero + 30.0, 1, log_n,
+                                                                    10.0)}
+    assert alternatives["spots"].delta_bic == pytest.approx(chi2 - 12.0 * log_n)
+    assert alternatives["spots"].signature.startswith("3 localised spot(s)"), alternatives["spots"].signature
+
+
+def test_out_of_library_alternatives_gain_nothing_on_white_noise():
+    # the maximum over positions (spots) or periods (ripple) of null statistics stays below the
+    # parameters' cost, so neither can reject a library term that explains anything
+    rng = np.random.default_rng(22)
+    shape = (192, 192)
+    mask = np.ones(shape, bool)
+    expected = 200.0 + 3000.0 * np.linspace(0.0, 1.0, shape[1])[None, :] * np.ones(shape)
+    log_n = np.log(mask.sum())
+    for _ in range(10):
+        z = rng.standard_normal(shape)
+        found = out_of_library_alternatives(z, mask, expected, np.sqrt(1.2 * expected + 40.0), 1, log_n, 10.0)
+        assert "spots" not in {a.name for a in found}
+        assert all(a.delta_bic < 0 for a in found), [(a.name, a.delta_bic) for a in found]
 
 
 @pytest.mark.parametrize("kind", ["smooth", "banding"])

@@ -213,15 +213,24 @@ def _confusable(cand: dict, ranking: list[dict], threshold: float) -> list[tuple
     return out
 
 
-def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, test, say):
+def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, test, say,
+                  out_of_library=lambda: []):
     """Refit the best candidates, accept the best refit (or nothing); returns
     ``(trial or None, AddedTerm or None, comparison list, generic signature or None, the generic
-    alternative that explained most of what it rejected or None)``."""
+    alternative that explained most of what it rejected or None)``.
+
+    ``out_of_library``: called once a candidate passes, the out-of-library alternatives of the
+    current residual (:func:`.structure.out_of_library_alternatives`): a candidate one of them
+    explains clearly more than (by the acceptance threshold) only absorbs a part of it."""
     trials = _refit_candidates(problem, layout, x, chi2_now, ranking, opts, log_n, say)
     comparison = [t.summary() for t in trials]
     passing = [t for t in trials if t.delta_bic > opts.accept_delta_bic]
     if not passing:
         return None, None, comparison, None, None
+    structural = out_of_library()
+    comparison.extend({"effect": a.name, "delta_bic": round(float(a.delta_bic), 2), "generic": True}
+                      for a in structural)
+    structural_signatures: dict[str, str] = {}  # name -> text, for the alternatives that rejected
     # A smooth-field library term must, fitted on top of a generic smooth additive light field,
     # still gain ΔBIC > threshold. Stray light or haze (outside
     # the library) is then reported unexplained instead of being credited to heel, vignetting
@@ -263,6 +272,15 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
                 f"{winner.delta_bic:.1f}) — not accepted")
             rejected_by.append(g.term.name)
             _append_once(rejecting, g)
+            continue
+        clearer = [a for a in structural if a.delta_bic > winner.delta_bic + opts.accept_delta_bic]
+        if clearer:
+            a = max(clearer, key=lambda t: t.delta_bic)
+            say(f"{winner.term.name}: an out-of-library {a.signature} explains more (ΔBIC {a.delta_bic:.1f} "
+                f"against {winner.delta_bic:.1f}) — not accepted")
+            structural_signatures.setdefault(a.name, f"{a.signature}, explaining more than the library's best "
+                                                     f"term ({winner.term.name}: ΔBIC {winner.delta_bic:.0f} "
+                                                     f"against {a.delta_bic:.0f}), not matching any library term")
             continue
         # each joint refit of the winner on top of a generic field is done once (the additive
         # field can both have rejected an earlier candidate and be this one's smooth-light test)
@@ -319,7 +337,8 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
         say(f"added {winner.term.name} ΔBIC {winner.delta_bic:.1f} (runner-up "
             f"{added.runner_up or '—'}) held-out gain {gain:.1f}")
         return winner, added, comparison, None, None
-    signature = "; ".join(GENERIC_SIGNATURE[name] for name in dict.fromkeys(rejected_by)) or None
+    signature = "; ".join([GENERIC_SIGNATURE[name] for name in dict.fromkeys(rejected_by)]
+                          + list(structural_signatures.values())) or None
     best_generic = max(rejecting, key=lambda t: t.delta_bic) if rejecting else None
     return None, None, comparison, signature, best_generic
 

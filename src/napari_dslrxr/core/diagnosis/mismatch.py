@@ -45,7 +45,7 @@ from .fitting import BASE_FREE, Layout, Problem, orthonormal
 from .locating import checkerboard, multiscale_maps, residual_profiles, signed_edge_distance, \
     smooth_term_delta_bic
 from .result import AddedTerm, DiagnosisOptions, DiagnosisResult
-from .structure import flagged_regions, ripple_phase_profile, structure_tests
+from .structure import flagged_regions, out_of_library_alternatives, ripple_phase_profile, structure_tests
 from .terms import GENERIC_SIGNATURE, KEYSTONE, REGISTRATION
 
 __all__ = ["AddedTerm", "BASE_FREE", "DiagnosisOptions", "DiagnosisResult", "auto_binning", "diagnose",
@@ -393,7 +393,8 @@ def _search(setup: _Setup, problem: Problem, fit: _Fit, candidates: list[Physics
         result.rankings.append([{k: v for k, v in r.items() if k != "_perp"} for r in ranking])
         say("ranking: " + ", ".join(f"{r['effect']} S={r['score']:.1f}" for r in ranking[:3]))
         trial, term_result, comparison, result.generic_signature, generic = compare_round(
-            problem, layout, x, fit.chi2, ranking, opts, log_n, train, test, say)
+            problem, layout, x, fit.chi2, ranking, opts, log_n, train, test, say,
+            lambda: _out_of_library(setup, problem, layout, x, log_n, opts))
         if generic is not None:
             result.generic_fit = _Fit(generic.layout, generic.x, generic.chi2, generic.jac)
         result.comparisons.append(comparison)
@@ -406,6 +407,16 @@ def _search(setup: _Setup, problem: Problem, fit: _Fit, candidates: list[Physics
         update_reported(result.added, fit.layout, fit.x, fit.jac)
         remaining = [t for t in remaining if t.name != trial.term.name]
     return result
+
+
+def _out_of_library(setup: _Setup, problem: Problem, layout: Layout, x: np.ndarray, log_n: float,
+                    opts: DiagnosisOptions) -> list:
+    """The out-of-library alternatives (ripple, spots) of the residual of the model ``x``."""
+    mu = setup.model.expected(*layout.unpack(x))
+    z = np.zeros(setup.y.shape)
+    z[problem.mask] = problem.whitened(layout, x)
+    noise_sd = np.sqrt(problem.noise.variance(mu, layout.unpack(x)[0]["offset_dn"]))
+    return out_of_library_alternatives(z, problem.mask, mu, noise_sd, setup.binning, log_n, opts.accept_delta_bic)
 
 
 def _final_checks(setup: _Setup, problem: Problem, search: _Search, located: dict,

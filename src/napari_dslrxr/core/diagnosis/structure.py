@@ -30,6 +30,8 @@ spots         max matched filter (Gaussian σ 1.5, 3 px) ~ N(0, 1)        locali
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .locating import _quantile_edges
@@ -303,6 +305,93 @@ def _spot_test(z: np.ndarray, mask: np.ndarray, sigmas_px=SPOT_SIGMAS_PX):
     peak, (r, c), sigma = best
     p = min(1.0, max(count, 1) * 2.0 * special.ndtr(-peak))  # two-sided normal tail
     return p, peak, (int(r), int(c)), sigma
+
+
+#: Most spots the out-of-library spot alternative fits, one after the other.
+MAX_ALTERNATIVE_SPOTS = 16
+
+
+@dataclass
+class OutOfLibraryAlternative:
+    """An out-of-library explanation of the current residual, from the structure tests' own
+    statistics: its ``delta_bic`` (Δχ² of its fit minus ``k ln n`` for its ``k`` parameters,
+    its positions and periods included), what it is, and where."""
+
+    name: str
+    delta_bic: float
+    signature: str
+
+
+def out_of_library_alternatives(z: np.ndarray, mask: np.ndarray, expected_dn: np.ndarray,
+                                noise_sd_dn: np.ndarray, binning: int, log_n: float,
+                                accept_delta_bic: float) -> list[OutOfLibraryAlternative]:
+    """What an intensity ripple and a set of localised spots, neither in the library, explain of
+    the prewhitened residual ``z`` (2-D, zero outside ``mask``) of the current model.
+
+    A library term that passes the acceptance threshold only by absorbing a part of such a
+    structure (a mirror ghost fitted to an ADC ripple, a camera gamma to dust spots) explains
+    less than these; the caller rejects it then. Ripple: the largest χ²(2) of
+    :func:`_intensity_ripple_test` (beyond a smooth trend in the expected intensity), for 3
+    parameters (two amplitudes and the period). Spots: Gaussian spots fitted one after the other
+    at the matched filter's maximum (:func:`_spot_test`'s widths), each subtracted before the
+    next, each kept while it gains ΔBIC > ``accept_delta_bic`` for 4 parameters (amplitude, row,
+    column, width); under the null neither gains (the maximum of ~n null statistics is about
+    ``2 ln n``, below ``3 ln n`` and ``4 ln n``)."""
+    out = []
+    zm = z[mask]
+    _, stat, period, n_freq = _intensity_ripple_test(zm, expected_dn[mask], noise_sd_dn[mask], binning)
+    if n_freq:
+        out.append(OutOfLibraryAlternative("intensity_ripple", stat - 3.0 * log_n,
+                                           f"intensity ripple (period ~{period:.0f} DN)"))
+    spots, gain = _greedy_spots(z, mask, 4.0 * log_n + accept_delta_bic)
+    if spots:
+        where = ", ".join(f"row {r * binning}, column {c * binning}" for r, c in spots[:3])
+        more = f" and {len(spots) - 3} more" if len(spots) > 3 else ""
+        out.append(OutOfLibraryAlternative("spots", gain - 4.0 * log_n * len(spots),
+                                           f"{len(spots)} localised spot(s) (dust, a defect) at {where}{more}"))
+    return out
+
+
+def _greedy_spots(z: np.ndarray, mask: np.ndarray, min_chi2: float,
+                  sigmas_px=SPOT_SIGMAS_PX) -> tuple[list[tuple[int, int]], float]:
+    """Gaussian spots fitted one after the other to ``z``: each at the largest matched-filter
+    statistic ``s`` over positions and widths (its fit's Δχ² is ``s²``), subtracted before the
+    next; while ``s² > min_chi2``. Returns their positions (fitted grid) and summed Δχ²."""
+    from scipy import ndimage
+
+    m = mask.astype(float)
+    zz = np.where(mask, z, 0.0)
+    kernels, dens, uses = [], [], []
+    for sigma in sigmas_px:
+        radius = int(np.ceil(4.0 * sigma))
+        k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+        k2 = k**2
+        den = ndimage.correlate1d(ndimage.correlate1d(m, k2, axis=0, mode="constant"), k2, axis=1, mode="constant")
+        use = mask & (den > 0.5 * k2.sum() ** 2)  # as _spot_test: enough unmasked weight, off the border
+        use[:radius], use[-radius:], use[:, :radius], use[:, -radius:] = False, False, False, False
+        kernels.append((k, radius))
+        dens.append(np.maximum(den, 1e-30))
+        uses.append(use)
+    spots, total = [], 0.0
+    while len(spots) < MAX_ALTERNATIVE_SPOTS:
+        best = None
+        for (k, radius), den, use in zip(kernels, dens, uses):
+            num = ndimage.correlate1d(ndimage.correlate1d(zz, k, axis=0, mode="constant"), k, axis=1, mode="constant")
+            chi2 = np.where(use, num**2 / den, 0.0)
+            i = int(np.argmax(chi2))
+            if best is None or chi2.flat[i] > best[0]:
+                best = (float(chi2.flat[i]), np.unravel_index(i, chi2.shape), num.flat[i] / den.flat[i], k, radius)
+        chi2, (r, c), amplitude, k, radius = best
+        if not chi2 > min_chi2:
+            break
+        rows = slice(max(0, r - radius), r + radius + 1)
+        cols = slice(max(0, c - radius), c + radius + 1)
+        patch = np.outer(k[rows.start - r + radius:rows.stop - r + radius],
+                         k[cols.start - c + radius:cols.stop - c + radius])
+        zz[rows, cols] -= amplitude * patch * m[rows, cols]
+        spots.append((int(r), int(c)))
+        total += chi2
+    return spots, total
 
 
 def structure_tests(z: np.ndarray, mask: np.ndarray, chi2: float, n_effective: float,
