@@ -64,7 +64,7 @@ LADDER = (5.0, 10.0, 15.0, 25.0, 50.0)
 OUTSIDE_LADDER = (10.0, 20.0, 40.0)
 PAIRS = (("heel_effect", "veiling_glare"), ("vignetting", "detector_gamma"), ("scatter", "mirror_ghost"),
          ("beam_hardening", "lens_distortion"), ("inverse_square", "focal_spot_shape"))
-SEED_BASE = {"dev": 0, "heldout": 50_000, "heldout2": 90_000, "heldout3": 130_000}
+SEED_BASE = {"dev": 0, "heldout": 50_000, "heldout2": 90_000, "heldout3": 130_000, "heldout4": 170_000}
 
 
 def _geometry_for(name: str, strength: float, geometry: gen.Geometry) -> gen.Geometry:

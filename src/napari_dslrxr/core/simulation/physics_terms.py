@@ -220,6 +220,10 @@ class PhysicsTerm:
     separating : str
         Acquisition that separates it from its confusable partners (docs/algorithms/diagnosis.md,
         section 'Identifiability').
+    even_in_main : bool
+        The effect is even in its main amplitude (two lobes at ±a): no gradient at the null, so
+        the score test's linearisation at the probe point cannot choose its shape-grid point,
+        and the diagnosis's refit tries each.
     """
 
     name: str
@@ -230,6 +234,7 @@ class PhysicsTerm:
     physics: str = ""
     covariate: str = ""
     separating: str = ""
+    even_in_main: bool = False
 
     def spec(self, name: str) -> ParamSpec:
         for p in self.params:
@@ -439,7 +444,8 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
         physics="Two-lobed focal spot (line focus): 1/2[N(-a) + N(+a)] along one axis, scaled by "
                 "M - 1 at the detector; anisotropic 'W'-shaped edge residual "
                 "(docs: simulation.md, 'Focal-spot shape').",
-        covariate="edge orientation", separating="two object heights × two edge orientations; pinhole"),
+        covariate="edge orientation", separating="two object heights × two edge orientations; pinhole",
+        even_in_main=True),
     PhysicsTerm(
         "veiling_glare", "psf",
         (P("eta", 0.0, (0.0, 0.5), 0.02, 2e-3),
