@@ -412,7 +412,7 @@ def _search(setup: _Setup, problem: Problem, fit: _Fit, candidates: list[Physics
 def _out_of_library(setup: _Setup, problem: Problem, layout: Layout, x: np.ndarray, log_n: float,
                     opts: DiagnosisOptions) -> list:
     """The out-of-library alternatives (ripple, spots) of the residual of the model ``x``."""
-    mu = setup.model.expected(*layout.unpack(x))
+    mu = problem.expected(layout, x)  # the cached image the ranking's residual came from
     z = np.zeros(setup.y.shape)
     z[problem.mask] = problem.whitened(layout, x)
     noise_sd = np.sqrt(problem.noise.variance(mu, layout.unpack(x)[0]["offset_dn"]))

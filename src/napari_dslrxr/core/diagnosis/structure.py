@@ -272,6 +272,29 @@ def _autocorrelation_test(z: np.ndarray, mask: np.ndarray, min_lag: int = 3, max
     return p, peak, (int(ly.ravel()[k]), int(lx.ravel()[k]))
 
 
+def _spot_filters(mask: np.ndarray, sigmas_px) -> tuple[list, list, list]:
+    """Per width: the 1-D Gaussian and its radius, the null variance ``Σk²`` of the matched
+    filter over unmasked pixels, and where it is tested: at least half the kernel's weight on
+    unmasked pixels, and not within the kernel's reach of the frame border (there the
+    prewhitening of correlated noise is inexact: a false spot at column 0 of a correlated-noise
+    null)."""
+    from scipy import ndimage
+
+    m = mask.astype(float)
+    kernels, dens, uses = [], [], []
+    for sigma in sigmas_px:
+        radius = int(np.ceil(4.0 * sigma))
+        k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+        k2 = k**2
+        den = ndimage.correlate1d(ndimage.correlate1d(m, k2, axis=0, mode="constant"), k2, axis=1, mode="constant")
+        use = mask & (den > 0.5 * k2.sum() ** 2)
+        use[:radius], use[-radius:], use[:, :radius], use[:, -radius:] = False, False, False, False
+        kernels.append((k, radius))
+        dens.append(den)
+        uses.append(use)
+    return kernels, dens, uses
+
+
 def _spot_test(z: np.ndarray, mask: np.ndarray, sigmas_px=SPOT_SIGMAS_PX):
     """Small localised spots (dust on the lens or screen, a defect): the prewhitened residual
     correlated with a Gaussian of each width, normalised by its standard deviation under the null
@@ -282,21 +305,11 @@ def _spot_test(z: np.ndarray, mask: np.ndarray, sigmas_px=SPOT_SIGMAS_PX):
     Returns (p, max |statistic|, (row, column), width)."""
     from scipy import ndimage, special
 
-    m = mask.astype(float)
     zz = np.where(mask, z, 0.0)
     best = (0.0, (0, 0), sigmas_px[0])
     count = 0
-    for sigma in sigmas_px:
-        radius = int(np.ceil(4.0 * sigma))
-        k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    for sigma, (k, _), den, use in zip(sigmas_px, *_spot_filters(mask, sigmas_px)):
         num = ndimage.correlate1d(ndimage.correlate1d(zz, k, axis=0, mode="constant"), k, axis=1, mode="constant")
-        k2 = k**2
-        den = ndimage.correlate1d(ndimage.correlate1d(m, k2, axis=0, mode="constant"), k2, axis=1, mode="constant")
-        # where at least half the kernel's weight falls on unmasked pixels, and not within the
-        # kernel's reach of the frame border: there the prewhitening of correlated noise is
-        # inexact (a false spot at column 0 of a correlated-noise null)
-        use = mask & (den > 0.5 * k2.sum() ** 2)
-        use[:radius], use[-radius:], use[:, :radius], use[:, -radius:] = False, False, False, False
         count += int(use.sum())
         stat = np.where(use, np.abs(num) / np.sqrt(np.maximum(den, 1e-30)), 0.0)
         i = int(np.argmax(stat))
@@ -361,17 +374,8 @@ def _greedy_spots(z: np.ndarray, mask: np.ndarray, min_chi2: float,
 
     m = mask.astype(float)
     zz = np.where(mask, z, 0.0)
-    kernels, dens, uses = [], [], []
-    for sigma in sigmas_px:
-        radius = int(np.ceil(4.0 * sigma))
-        k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
-        k2 = k**2
-        den = ndimage.correlate1d(ndimage.correlate1d(m, k2, axis=0, mode="constant"), k2, axis=1, mode="constant")
-        use = mask & (den > 0.5 * k2.sum() ** 2)  # as _spot_test: enough unmasked weight, off the border
-        use[:radius], use[-radius:], use[:, :radius], use[:, -radius:] = False, False, False, False
-        kernels.append((k, radius))
-        dens.append(np.maximum(den, 1e-30))
-        uses.append(use)
+    kernels, dens, uses = _spot_filters(mask, sigmas_px)
+    dens = [np.maximum(den, 1e-30) for den in dens]
     spots, total = [], 0.0
     while len(spots) < MAX_ALTERNATIVE_SPOTS:
         best = None
@@ -384,11 +388,9 @@ def _greedy_spots(z: np.ndarray, mask: np.ndarray, min_chi2: float,
         chi2, (r, c), amplitude, k, radius = best
         if not chi2 > min_chi2:
             break
-        rows = slice(max(0, r - radius), r + radius + 1)
-        cols = slice(max(0, c - radius), c + radius + 1)
-        patch = np.outer(k[rows.start - r + radius:rows.stop - r + radius],
-                         k[cols.start - c + radius:cols.stop - c + radius])
-        zz[rows, cols] -= amplitude * patch * m[rows, cols]
+        # tested positions lie at least a radius from the border: the whole kernel fits
+        rows, cols = slice(r - radius, r + radius + 1), slice(c - radius, c + radius + 1)
+        zz[rows, cols] -= amplitude * np.outer(k, k) * m[rows, cols]
         spots.append((int(r), int(c)))
         total += chi2
     return spots, total
