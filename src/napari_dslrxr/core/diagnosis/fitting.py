@@ -131,28 +131,35 @@ class Problem:
         return self.whiten_field((self.y - self.expected(layout, x)) * self.wsqrt, sel)
 
     def jacobian(self, layout: Layout, x: np.ndarray, sel: np.ndarray | None = None,
-                 f0: np.ndarray | None = None) -> np.ndarray:
+                 f0: np.ndarray | None = None, columns=None) -> np.ndarray:
         """Jacobian of the whitened residual: analytic for offset and gain, else forward differences.
-        ``f0``: the whitened residual at ``x``, if already computed."""
+        ``f0``: the whitened residual at ``x``, if already computed; ``columns``: the indices of
+        the parameters to differentiate (all if None)."""
         base = layout.unpack(x)[0]
         mu = self.expected(layout, x)
         if f0 is None:
             f0 = self.whiten_field((self.y - mu) * self.wsqrt, sel)
+        columns = range(x.size) if columns is None else list(columns)
         # columns written as contiguous rows of the transpose, then one transposing copy (the
         # same numbers; writing each long column with a stride took twice as long)
-        jac_t = np.empty((x.size, f0.size))
-        for j, (owner, key) in enumerate(layout.names):
-            if owner == "base" and key == "offset_dn":
-                jac_t[j] = self.whiten_field(-self.wsqrt, sel)
-            elif owner == "base" and key == "gain_dn":
-                jac_t[j] = self.whiten_field(-(mu - base["offset_dn"]) / base["gain_dn"] * self.wsqrt, sel)
-            else:
-                h = layout.steps[j] if x[j] + layout.steps[j] <= layout.upper[j] else -layout.steps[j]
-                xj = x.copy()
-                xj[j] += h
-                np.subtract(self.whitened(layout, xj, sel), f0, out=jac_t[j])
-                jac_t[j] /= h
+        jac_t = np.empty((len(columns), f0.size))
+        for row, j in enumerate(columns):
+            owner, key = layout.names[j]
+            self._jacobian_row(layout, x, sel, f0, base, mu, j, owner, key, jac_t[row])
         return np.ascontiguousarray(jac_t.T)
+
+    def _jacobian_row(self, layout, x, sel, f0, base, mu, j, owner, key, out) -> None:
+        """Column ``j`` of :meth:`jacobian`, written into ``out``."""
+        if owner == "base" and key == "offset_dn":
+            out[:] = self.whiten_field(-self.wsqrt, sel)
+        elif owner == "base" and key == "gain_dn":
+            out[:] = self.whiten_field(-(mu - base["offset_dn"]) / base["gain_dn"] * self.wsqrt, sel)
+        else:
+            h = layout.steps[j] if x[j] + layout.steps[j] <= layout.upper[j] else -layout.steps[j]
+            xj = x.copy()
+            xj[j] += h
+            np.subtract(self.whitened(layout, xj, sel), f0, out=out)
+            out /= h
 
     def fit(self, layout: Layout, x0: np.ndarray, sel: np.ndarray | None = None, max_nfev: int = 40):
         """Bounded least squares; returns ``(x, χ², Jacobian at x)``."""
@@ -167,7 +174,8 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
     ``jac(x, r)`` gets the residual ``r = fun(x)`` already computed. The residual vectors are
     long (every pixel) and the parameters few (≤ ~30): ``JᵀJ`` is a
     tiny matrix, so each step costs one Jacobian, not an SVD of it. Parameters at a bound whose
-    gradient points outward are held for that step. Stops when χ² improves by less than
+    gradient points outward are held for that step, and so are those the step would carry past
+    a bound (held there, the step of the others solved again: :func:`_bounded_step`). Stops when χ² improves by less than
     ``tol = max(1e-3, rel_tol·χ²)`` (far below what a BIC comparison resolves), when the
     Gauss–Newton step's predicted improvement ``gᵀ(JᵀJ)⁻¹g`` (the most any step can gain under
     the linearised model) is below ``tol``, or after ``max_nfev`` residual evaluations.
@@ -202,9 +210,8 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
             break
         accepted = False
         while nfev < max_nfev:
-            step = np.zeros_like(x)
             try:
-                step[free] = np.linalg.solve(af + lam * np.diag(diag), -gf)
+                step = _bounded_step(a, g, x, lower, upper, free, lam, np.maximum(np.diag(a), 1e-30))
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
@@ -221,14 +228,35 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
         if not accepted:
             break
         gain = chi2 - chi2_new
-        sf = step[free]
-        predicted = -float(2.0 * gf @ sf + sf @ af @ sf)
+        predicted = -float(2.0 * g @ step + step @ a @ step)
         x, r, chi2 = x_new, r_new, chi2_new
         lam = max(lam / (10.0 if gain >= 0.75 * predicted else 3.0), 1e-9)
         j = jac(x, r)
         if gain < max(1e-3, rel_tol * chi2):
             break
     return x, chi2, j
+
+
+def _bounded_step(a, g, x, lower, upper, free, lam, diag, max_rounds: int = 4) -> np.ndarray:
+    """The damped Gauss–Newton step of the parameters ``free``, solved again with the
+    parameters its last solution pushed past a bound held at that bound: a clipped step is no
+    longer the minimiser of the linearised problem, and the others must take up what the
+    clipped ones cannot do (a term's amplitude run into its null at the start of a refit
+    otherwise costs several rejected trials)."""
+    step = np.zeros_like(x)
+    free = free.copy()
+    for _ in range(max_rounds):
+        fixed = ~free
+        rhs = -(g[free] + a[np.ix_(free, fixed)] @ step[fixed])
+        step[free] = np.linalg.solve(a[np.ix_(free, free)] + lam * np.diag(diag[free]), rhs)
+        out = free & ((x + step < lower) | (x + step > upper))
+        if not out.any():
+            break
+        step[out] = np.clip(x + step, lower, upper)[out] - x[out]
+        free &= ~out
+        if not free.any():
+            break
+    return step
 
 
 def covariance(jac: np.ndarray) -> np.ndarray:

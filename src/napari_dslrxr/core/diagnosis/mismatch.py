@@ -40,8 +40,8 @@ from ..robust import robust_sigma
 from ..simulation.physics_terms import LIBRARY, ChainGrid, PhysicsTerm, get_term
 from ..simulation.simulator import ChainModel, Scene, block_mean
 from . import noise as noise_mod
-from .acceptance import compare_round, rank, update_reported
-from .fitting import BASE_FREE, Layout, Problem, orthonormal
+from .acceptance import base_span, compare_round, rank, update_reported
+from .fitting import BASE_FREE, Layout, Problem
 from .locating import checkerboard, multiscale_maps, residual_profiles, signed_edge_distance, \
     smooth_term_delta_bic
 from .result import AddedTerm, DiagnosisOptions, DiagnosisResult
@@ -430,7 +430,7 @@ def _final_checks(setup: _Setup, problem: Problem, search: _Search, located: dic
     final_dof = fit.chi2 / (problem.n_effective - len(fit.x))
     if search.added:
         search.added[-1].chi2_per_dof = final_dof
-    q0 = orthonormal(fit.jac, np.linalg.norm(fit.jac, axis=0).max(), 1e-9)
+    q0 = base_span(fit.jac)
     smooth_dbic, smooth_map = smooth_term_delta_bic(z_final, mask, q0, cgrid)
     radius = np.sqrt(((cgrid.x**2 + cgrid.y**2) / 2.0) * np.ones(setup.y.shape))
     noise_sd = np.sqrt(problem.noise.variance(mu, fit.layout.unpack(fit.x)[0]["offset_dn"]))
@@ -442,7 +442,7 @@ def _final_checks(setup: _Setup, problem: Problem, search: _Search, located: dic
     # A keystone (tilted camera or screen) is too weak for lens distortion to pass before the
     # generic warps judge it, yet clear in a 2-parameter test: its projected score on the final
     # residual (exact for its linear parameters) against the acceptance criterion of a term
-    keystone_rank = rank(problem, fit.layout, fit.x, fit.jac, z_final[mask], [KEYSTONE])
+    keystone_rank = rank(problem, fit.layout, fit.x, fit.jac, z_final[mask], [KEYSTONE], q0)
     keystone_dbic = keystone_rank[0]["delta_bic_est"] if keystone_rank else float("-inf")
     structure["tests"]["keystone"] = {"delta_bic_est": float(keystone_dbic),
                                       "signature": GENERIC_SIGNATURE["keystone"]}

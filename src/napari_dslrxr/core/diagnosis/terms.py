@@ -65,7 +65,8 @@ REGISTRATION_AFFINE = PhysicsTerm(
     "registration_affine", "optics",
     (P("scale", 0.0, (-0.01, 0.01), 0.0, 1e-5), P("rotation_rad", 0.0, (-0.02, 0.02), 0.0, 1e-5)),
     "scale", _apply_affine,
-    physics="Magnification error and small rotation about the image centre (registration).")
+    physics="Magnification error and small rotation about the image centre (registration).",
+    linear_params=("scale", "rotation_rad"), linear_in_light=True)
 REGISTRATION = (REGISTRATION_SHIFT, REGISTRATION_AFFINE)
 
 
@@ -103,10 +104,13 @@ def _apply_smooth_additive(state: ChainState, p: dict) -> None:
 
 _N_SMOOTH = 14  # Legendre products of total degree 1..4
 _COEFS = tuple(P(f"c{i:02d}", 0.0, (-1.0, 1.0), 0.0, 1e-3) for i in range(_N_SMOOTH))
+_LINEAR_COEFS = dict(linear_params=tuple(c.name for c in _COEFS), linear_in_light=True)
 SMOOTH_GAIN = PhysicsTerm("smooth_gain", "optics", _COEFS, "c00", _apply_smooth_gain,
-                          physics="Generic smooth multiplicative field (not physics: a competitor).")
+                          physics="Generic smooth multiplicative field (not physics: a competitor).",
+                          **_LINEAR_COEFS)
 SMOOTH_ADDITIVE = PhysicsTerm("smooth_additive", "camera", _COEFS, "c00", _apply_smooth_additive,
-                              physics="Generic smooth additive light (not physics: a competitor).")
+                              physics="Generic smooth additive light (not physics: a competitor).",
+                              **_LINEAR_COEFS)
 
 #: Monomials x^i y^j of the generic warp: total degree 2 and 3 (degree 0 and 1 are the
 #: registration's shift, scale and rotation).
@@ -127,7 +131,9 @@ SMOOTH_WARP = PhysicsTerm(
           for axis in "xy" for k in range(len(_WARP_POWERS))),
     "x00", _apply_smooth_warp,
     physics="Generic smooth geometric distortion, displacements of degree 2-3 (not physics: a "
-            "competitor of lens distortion).")
+            "competitor of lens distortion).",
+    linear_params=tuple(f"{axis}{k:02d}" for axis in "xy" for k in range(len(_WARP_POWERS))),
+    linear_in_light=True)
 
 
 def _apply_keystone(state: ChainState, p: dict) -> None:
@@ -146,7 +152,8 @@ KEYSTONE = PhysicsTerm(
     (P("tilt_x", 0.0, (-0.02, 0.02), 0.0, 1e-5), P("tilt_y", 0.0, (-0.02, 0.02), 0.0, 1e-5)),
     "tilt_x", _apply_keystone,
     physics="Keystone of a camera or screen tilted against the other (the first-order projective "
-            "distortion, 2 parameters; not in the library: a competitor of lens distortion).")
+            "distortion, 2 parameters; not in the library: a competitor of lens distortion).",
+    linear_params=("tilt_x", "tilt_y"), linear_in_light=True)
 
 
 def _apply_ghost_copy(state: ChainState, p: dict) -> None:
@@ -175,7 +182,8 @@ GHOST_COPY = PhysicsTerm(
     "epsilon", _apply_ghost_copy,
     physics="Generic lens ghost: a defocused copy of the image inverted about the optical axis (a "
             "second reflection between lens surfaces or the sensor; not in the library: a "
-            "competitor of the smooth fields, scatter and the mirror ghost).")
+            "competitor of the smooth fields, scatter and the mirror ghost).",
+    linear_params=("epsilon",), linear_in_light=True)
 GENERIC_COMPETITORS = (SMOOTH_GAIN, SMOOTH_ADDITIVE, SMOOTH_WARP, KEYSTONE, GHOST_COPY)
 GENERIC_SIGNATURE = {"smooth_gain": "smooth multiplicative field not matching any library term",
                      "smooth_additive": "smooth additive light (stray light / haze) not matching "
@@ -207,7 +215,8 @@ def additive_twin(term: PhysicsTerm) -> PhysicsTerm:
             state.light = state.light + (field - 1.0)
 
         _TWINS[term.name] = PhysicsTerm(term.name + ADDITIVE_TWIN_SUFFIX, "camera", term.params, term.main, apply,
-                                        physics=f"{term.name}'s field as additive light (not physics: a competitor).")
+                                        physics=f"{term.name}'s field as additive light (not physics: a competitor).",
+                                        linear_in_light=True)
     return _TWINS[term.name]
 
 

@@ -224,6 +224,13 @@ class PhysicsTerm:
         The effect is even in its main amplitude (two lobes at ±a): no gradient at the null, so
         the score test's linearisation at the probe point cannot choose its shape-grid point,
         and the diagnosis's refit tries each.
+    linear_params : tuple of str
+        Parameters in which the term's output is affine, jointly (an amplitude multiplying a
+        fixed pattern): its derivative in them is the same at every value.
+    linear_in_light : bool
+        An optics or camera term whose map from the light it receives to the light it passes on
+        is affine (a field, a warp, a copy; not a non-linear response). A PSF term always is (it
+        multiplies the transfer function).
     """
 
     name: str
@@ -235,6 +242,12 @@ class PhysicsTerm:
     covariate: str = ""
     separating: str = ""
     even_in_main: bool = False
+    linear_params: tuple[str, ...] = ()
+    linear_in_light: bool = False
+
+    def passes_light_linearly(self) -> bool:
+        """Whether the term's map of the light it receives is affine (see ``linear_in_light``)."""
+        return self.stage == "psf" or self.linear_in_light
 
     def spec(self, name: str) -> ParamSpec:
         for p in self.params:
@@ -435,7 +448,8 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
         "amplitude", _apply_scatter,
         physics="Object scatter: a low-frequency haze A [(I T (-ln T)) ⊛ G_sigma] under and beside "
                 "thick parts (docs: simulation.md, 'Object scatter').",
-        covariate="blurred thickness (neighbourhood p)", separating="air-gap or field-size series; beam-stop discs"),
+        covariate="blurred thickness (neighbourhood p)", separating="air-gap or field-size series; beam-stop discs",
+        linear_params=("amplitude",)),
     PhysicsTerm(
         "focal_spot_shape", "psf",
         (P("half_separation_mm", 0.0, (0.0, 3.0), 0.4, 0.02, unit="mm"),
@@ -454,7 +468,8 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
         physics="Screen veiling glare: long exponential PSF tail (1 - eta) G + eta exp(-r/w)/(2 pi w^2) "
                 "from grain scatter, backing reflection and light piping "
                 "(docs: simulation.md, 'Veiling glare').",
-        covariate="signed distance to edges", separating="thin high-Z edge without scatterer"),
+        covariate="signed distance to edges", separating="thin high-Z edge without scatterer",
+        linear_params=("eta",)),
     PhysicsTerm(
         "mirror_ghost", "psf",
         (P("epsilon", 0.0, (0.0, 0.3), 0.02, 2e-3),
@@ -464,14 +479,16 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
         "epsilon", _apply_mirror_ghost,
         physics="Mirror ghost: the front face of a back-silvered mirror adds a faint shifted copy "
                 "eps L(q + d), eps ≈ 6.6 %, d 1.5-3 mm (docs: simulation.md, 'Mirror ghost').",
-        covariate="residual autocorrelation at lag d", separating="front-surface mirror"),
+        covariate="residual autocorrelation at lag d", separating="front-surface mirror",
+        linear_params=("epsilon",)),
     PhysicsTerm(
         "lens_distortion", "optics",
         (P("k1", 0.0, (-0.1, 0.1), 0.005, 5e-4),),
         "k1", _apply_lens_distortion,
         physics="Radial lens distortion q_d = q (1 + k1 rho^2) about the image centre; edge "
                 "dipoles growing with radius (docs: simulation.md, 'Lens distortion').",
-        covariate="radius × edge direction", separating="grid phantom"),
+        covariate="radius × edge direction", separating="grid phantom",
+        linear_in_light=True),
     PhysicsTerm(
         "vignetting", "optics",
         (P("k1", 0.0, (-0.8, 0.3), -0.02, 2e-3), P("k2", 0.0, (-0.8, 0.3), -0.02, 2e-3),
@@ -479,14 +496,16 @@ LIBRARY: tuple[PhysicsTerm, ...] = (
         "k1", _apply_vignetting,
         physics="Lens vignetting 1 + k1 rho^2 + k2 rho^4 about the optical centre "
                 "(docs: simulation.md, 'Vignetting').",
-        covariate="radius about the optical centre", separating="flats at two f-numbers"),
+        covariate="radius about the optical centre", separating="flats at two f-numbers",
+        linear_params=("k1", "k2"), linear_in_light=True),
     PhysicsTerm(
         "detector_gamma", "camera",
         (P("kappa", 0.0, (-0.3, 0.3), 0.01, 1e-3),),
         "kappa", _apply_detector_gamma,
         physics="Non-linear camera response DN = b + K e (1 - kappa e), e relative to the open "
                 "field (docs: simulation.md, 'Detector gamma').",
-        covariate="expected intensity", separating="exposure series / photon transfer"),
+        covariate="expected intensity", separating="exposure series / photon transfer",
+        linear_params=("kappa",)),
 )
 
 LIBRARY_BY_NAME: dict[str, PhysicsTerm] = {t.name: t for t in LIBRARY}
