@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from napari_dslrxr.core.diagnosis import acceptance
+from napari_dslrxr.core.diagnosis import acceptance, fitting
 from napari_dslrxr.core.diagnosis.fitting import Layout, Problem, _bounded_step
 from napari_dslrxr.core.diagnosis.terms import REGISTRATION
 from napari_dslrxr.core.simulation.physics_terms import get_term
@@ -164,3 +164,49 @@ def test_line_search_offset_and_gain_are_the_least_squares_solution():
     # and it recovers the values the recording was made with (noise 8 DN over 64² pixels)
     assert refit[layout.index("base", "offset_dn")] == pytest.approx(x[layout.index("base", "offset_dn")], abs=2.0)
     assert refit[layout.index("base", "gain_dn")] == pytest.approx(x[layout.index("base", "gain_dn")], rel=2e-3)
+
+
+def test_a_fits_final_jacobian_is_computed_when_read_and_equals_the_direct_one():
+    problem, layout, x = _problem()
+    start = x.copy()
+    start[layout.index("base", "detector_sigma_mm")] *= 1.1
+    counted = []
+    jacobian = problem.jacobian
+
+    def counting(*args, **kwargs):
+        counted.append(1)
+        return jacobian(*args, **kwargs)
+
+    problem.jacobian = counting
+    x_fit, _, jac = problem.fit(layout, start)
+    before = len(counted)
+    value = fitting.resolved(jac)
+    assert isinstance(jac, fitting.DeferredJacobian) and len(counted) == before + 1
+    assert fitting.resolved(jac) is value and len(counted) == before + 1  # computed once
+    np.testing.assert_array_equal(value, jacobian(layout, x_fit))
+    # read after the weights changed, it would be another Jacobian: refused
+    _, _, stale = problem.fit(layout, start)
+    problem.wsqrt = problem.wsqrt * 2.0
+    with pytest.raises(RuntimeError, match="wsqrt"):
+        fitting.resolved(stale)
+
+
+def test_levenberg_marquardt_stops_where_no_step_gains_on_the_previous_jacobian():
+    """A linear problem: the damped first step (λ = 1e-3) leaves a little to gain, the second
+    reaches the minimum, and the fit ends there without computing the Jacobian at that point
+    (the test on the previous one is exact for a linear model); it is computed when read."""
+    rng = np.random.default_rng(8)
+    design = rng.normal(size=(500, 3))
+    target = design @ np.array([1.0, -2.0, 0.5]) + rng.normal(0.0, 0.1, 500)
+    calls = []
+
+    def jac(x, r):
+        calls.append(1)
+        return design
+
+    x, chi2, j = fitting.levenberg_marquardt(lambda x: design @ x - target, jac, np.zeros(3),
+                                             np.full(3, -np.inf), np.full(3, np.inf), 40)
+    best, *_ = np.linalg.lstsq(design, target, rcond=None)
+    np.testing.assert_allclose(x, best, rtol=1e-6, atol=1e-6)
+    assert isinstance(j, fitting.DeferredJacobian) and len(calls) == 2
+    assert np.array_equal(fitting.resolved(j), design) and len(calls) == 3

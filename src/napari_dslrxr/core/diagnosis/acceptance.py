@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..simulation.physics_terms import STAGES, ChainGrid, PhysicsTerm, get_term
-from .fitting import Layout, Problem, covariance, orthonormal, tall_product
+from .fitting import Layout, Problem, covariance, orthonormal, resolved, tall_product
 from .result import AddedTerm, DiagnosisOptions
 from .terms import GENERIC_SIGNATURE, GHOST_COPY, KEYSTONE, SMOOTH_ADDITIVE, SMOOTH_WARP, additive_twin, \
     physical_bounds, probe_params
@@ -74,18 +74,22 @@ def rank(problem: Problem, layout: Layout, x: np.ndarray, jac0: np.ndarray, z: n
     if q0 is None:
         q0 = base_span(jac0)
     log_n = np.log(problem.n)
+    q0_z = q0.T @ z
     out = []
     for term in candidates:
         best = None
         for gp in term.grid_points():
             cols = _candidate_columns(problem, layout, x, term, gp)
-            perp = cols - tall_product(q0, q0.T @ cols)
-            # S = gᵀ G⁺ g with G = B⊥ᵀB⊥, g = B⊥ᵀz (small d×d problem; directions whose
-            # projected norm is below 1e-4 of the raw column norm are not identifiable)
-            gram = perp.T @ perp
-            grad = perp.T @ z
+            # S = gᵀ G⁺ g with G = B⊥ᵀB⊥, g = B⊥ᵀz, B⊥ = (1 - q0 q0ᵀ) B: from the small products
+            # BᵀB, q0ᵀB and Bᵀz (the long projected columns are formed only for each term's
+            # best grid point; the subtraction loses ~1e-16 of |B|², far below the 1e-8 of it
+            # under which a direction is not identifiable: projected norm below 1e-4 of the raw)
+            q0_cols = q0.T @ cols
+            cross = cols.T @ cols
+            gram = cross - q0_cols.T @ q0_cols
+            grad = cols.T @ z - q0_cols.T @ q0_z
             evals, evecs = np.linalg.eigh(gram)
-            ref = float(np.linalg.norm(cols, axis=0).max())
+            ref = float(np.sqrt(np.max(np.diag(cross))))
             keep = evals > (1e-4 * ref) ** 2
             if not keep.any():
                 continue
@@ -94,9 +98,11 @@ def rank(problem: Problem, layout: Layout, x: np.ndarray, jac0: np.ndarray, z: n
             if best is None or score > best["score"]:
                 coef = evecs[:, keep] @ (proj / evals[keep])
                 best = {"effect": term.name, "score": score, "dof": int(keep.sum()),
-                        "grid": dict(gp), "one_step": [float(c) for c in coef], "_perp": perp}
+                        "grid": dict(gp), "one_step": [float(c) for c in coef], "_cols": (cols, q0_cols)}
         if best is None:
             continue
+        cols, q0_cols = best.pop("_cols")
+        best["_perp"] = cols - tall_product(q0, q0_cols)
         k = len(term.params)
         best["delta_bic_est"] = best["score"] - k * log_n
         out.append(best)
@@ -106,6 +112,7 @@ def rank(problem: Problem, layout: Layout, x: np.ndarray, jac0: np.ndarray, z: n
 
 def base_span(jac0: np.ndarray) -> np.ndarray:
     """Orthonormal basis of the current model's Jacobian columns (what the score test projects out)."""
+    jac0 = resolved(jac0)
     return orthonormal(jac0, np.linalg.norm(jac0, axis=0).max(), 1e-9)
 
 
@@ -382,7 +389,8 @@ def compare_round(problem, layout, x, chi2_now, ranking, opts, log_n, train, tes
             like_smooth_light = True
         # refine the candidate's refit before it is judged further (the comparison refits stop
         # at max_nfev; nonlinear shape parameters need more)
-        winner.x, winner.chi2, winner.jac = problem.fit(winner.layout, winner.x, max_nfev=3 * opts.max_nfev)
+        winner.x, winner.chi2, winner.jac = problem.fit(winner.layout, winner.x, max_nfev=3 * opts.max_nfev,
+                                                        jac0=winner.jac)
         winner.delta_bic = float(chi2_now - winner.chi2 - len(winner.term.params) * log_n)
         if like_smooth_light:
             twin = _additive_twin_trial(problem, layout, x, chi2_now, winner, opts, log_n)

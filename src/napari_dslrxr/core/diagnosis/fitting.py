@@ -161,17 +161,57 @@ class Problem:
             np.subtract(self.whitened(layout, xj, sel), f0, out=out)
             out /= h
 
-    def fit(self, layout: Layout, x0: np.ndarray, sel: np.ndarray | None = None, max_nfev: int = 40):
-        """Bounded least squares; returns ``(x, χ², Jacobian at x)``."""
-        return levenberg_marquardt(lambda x: self.whitened(layout, x, sel),
-                                    lambda x, r: self.jacobian(layout, x, sel, r),
-                                    x0, layout.lower, layout.upper, max_nfev)
+    def fit(self, layout: Layout, x0: np.ndarray, sel: np.ndarray | None = None, max_nfev: int = 40,
+            jac0=None):
+        """Bounded least squares; returns ``(x, χ², Jacobian at x)``, the Jacobian possibly a
+        :class:`DeferredJacobian` (read it with :func:`resolved`). ``jac0``: the Jacobian at
+        ``x0`` of an earlier fit of the same problem ending there, if there is one."""
+        x, chi2, jac = levenberg_marquardt(lambda x: self.whitened(layout, x, sel),
+                                           lambda x, r: self.jacobian(layout, x, sel, r),
+                                           x0, layout.lower, layout.upper, max_nfev, jac0=jac0)
+        if isinstance(jac, DeferredJacobian):
+            jac.require_unchanged(self, ("y", "wsqrt", "noise", "mask"))
+        return x, chi2, jac
 
 
-def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: float = 1e-9):
+class DeferredJacobian:
+    """The Jacobian at a fit's final point, computed when first read. Most fits' last one is
+    never read (a refit that loses the comparison, a held-out fit, a fit after which the noise
+    model is renewed), and each costs a model evaluation per parameter (docs/diagnosis.md,
+    "The fits' arithmetic").
+
+    The Jacobian depends on the problem's state (recording, weights, noise model, mask): reading
+    it after that state changed raises instead of silently computing another one."""
+
+    def __init__(self, compute):
+        self._compute = compute
+        self._value: np.ndarray | None = None
+        self._state: tuple = ()
+
+    def require_unchanged(self, owner, attributes: tuple[str, ...]) -> None:
+        self._state = (owner, attributes, tuple(getattr(owner, a) for a in attributes))
+
+    def __call__(self) -> np.ndarray:
+        if self._value is None:
+            if self._state:
+                owner, attributes, values = self._state
+                changed = [a for a, v in zip(attributes, values) if getattr(owner, a) is not v]
+                if changed:
+                    raise RuntimeError(f"deferred Jacobian read after the problem's {', '.join(changed)} changed")
+            self._value, self._compute, self._state = self._compute(), None, ()
+        return self._value
+
+
+def resolved(jac) -> np.ndarray:
+    """The Jacobian array of a fit's result (computing it if it was deferred)."""
+    return jac() if isinstance(jac, DeferredJacobian) else jac
+
+
+def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: float = 1e-9, jac0=None):
     """Levenberg–Marquardt on the small normal equations, with an active set for the bounds.
 
-    ``jac(x, r)`` gets the residual ``r = fun(x)`` already computed. The residual vectors are
+    ``jac(x, r)`` gets the residual ``r = fun(x)`` already computed; ``jac0``, if given, is
+    the Jacobian at ``x0`` (within the bounds). The residual vectors are
     long (every pixel) and the parameters few (≤ ~30): ``JᵀJ`` is a
     tiny matrix, so each step costs one Jacobian, not an SVD of it. Parameters at a bound whose
     gradient points outward are held for that step, and so are those the step would carry past
@@ -188,7 +228,7 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
     r = fun(x)
     chi2 = float(r @ r)
     nfev, lam = 1, 1e-3
-    j = jac(x, r)
+    j = jac(x, r) if jac0 is None else resolved(jac0)
     while nfev < max_nfev:
         a = j.T @ j
         g = j.T @ r
@@ -231,10 +271,29 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
         predicted = -float(2.0 * g @ step + step @ a @ step)
         x, r, chi2 = x_new, r_new, chi2_new
         lam = max(lam / (10.0 if gain >= 0.75 * predicted else 3.0), 1e-9)
+        tol = max(1e-3, rel_tol * chi2)
+        if gain < tol or nfev >= max_nfev or _converged_on(j, r, x, lower, upper, 0.1 * tol):
+            # the Jacobian at the final point only if a caller reads it
+            return x, chi2, DeferredJacobian(lambda x=x, r=r: jac(x, r))
         j = jac(x, r)
-        if gain < max(1e-3, rel_tol * chi2):
-            break
     return x, chi2, j
+
+
+def _converged_on(j, r, x, lower, upper, tol: float) -> bool:
+    """The convergence test of :func:`levenberg_marquardt` (no step can gain ``tol``) at the new
+    point ``x`` with residual ``r``, on the previous point's Jacobian ``j``: a step that close to
+    the minimum barely changes it, and the test then spares a Jacobian the fit would only
+    compute to find it has converged (with a tenth of the tolerance, for the approximation)."""
+    a, g = j.T @ j, j.T @ r
+    free = ~(((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0)))
+    if not free.any():
+        return True
+    af, gf = a[np.ix_(free, free)], g[free]
+    try:
+        predicted = float(gf @ np.linalg.solve(af + 1e-12 * np.diag(np.maximum(np.diag(af), 1e-30)), gf))
+    except np.linalg.LinAlgError:
+        return False
+    return 0.0 <= predicted < tol
 
 
 def _bounded_step(a, g, x, lower, upper, free, lam, diag, max_rounds: int = 4) -> np.ndarray:
@@ -259,7 +318,8 @@ def _bounded_step(a, g, x, lower, upper, free, lam, diag, max_rounds: int = 4) -
     return step
 
 
-def covariance(jac: np.ndarray) -> np.ndarray:
+def covariance(jac) -> np.ndarray:
+    jac = resolved(jac)
     jtj = jac.T @ jac
     try:
         return np.linalg.inv(jtj)
