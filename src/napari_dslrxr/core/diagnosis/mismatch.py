@@ -255,6 +255,14 @@ class _Fit:
     x: np.ndarray
     chi2: float
     jac: np.ndarray
+    _span: np.ndarray | None = None
+
+    def span(self) -> np.ndarray:
+        """:func:`.acceptance.base_span` of the Jacobian, computed once (the last ranking and the
+        final checks project out the same model)."""
+        if self._span is None:
+            self._span = base_span(self.jac)
+        return self._span
 
 
 @dataclass
@@ -389,7 +397,7 @@ def _search(setup: _Setup, problem: Problem, fit: _Fit, candidates: list[Physics
     remaining = list(candidates)
     while len(result.added) < opts.max_terms and remaining:
         layout, x = fit.layout, fit.x
-        ranking = rank(problem, layout, x, fit.jac, problem.whitened(layout, x), remaining)
+        ranking = rank(problem, layout, x, fit.jac, problem.whitened(layout, x), remaining, fit.span())
         result.rankings.append([{k: v for k, v in r.items() if k != "_perp"} for r in ranking])
         say("ranking: " + ", ".join(f"{r['effect']} S={r['score']:.1f}" for r in ranking[:3]))
         trial, term_result, comparison, result.generic_signature, generic = compare_round(
@@ -430,7 +438,7 @@ def _final_checks(setup: _Setup, problem: Problem, search: _Search, located: dic
     final_dof = fit.chi2 / (problem.n_effective - len(fit.x))
     if search.added:
         search.added[-1].chi2_per_dof = final_dof
-    q0 = base_span(fit.jac)
+    q0 = fit.span()
     smooth_dbic, smooth_map = smooth_term_delta_bic(z_final, mask, q0, cgrid)
     radius = np.sqrt(((cgrid.x**2 + cgrid.y**2) / 2.0) * np.ones(setup.y.shape))
     noise_sd = np.sqrt(problem.noise.variance(mu, fit.layout.unpack(fit.x)[0]["offset_dn"]))

@@ -310,7 +310,7 @@ def _apply_inverse_square(state: ChainState, p: dict) -> None:
     rho2 = _radial_sq(g, p["foot_x"], p["foot_y"])
     # cos^3 gamma with cos gamma = 1/sqrt(1 + s rho^2), s = (R_diag / SDD_eff)^2
     # (docs/algorithms/simulation.md, section 'Inverse square').
-    state.fluence = state.fluence * (1.0 + p["strength"] * rho2) ** -1.5
+    state.fluence = state.fluence * _inverse_three_halves(1.0 + p["strength"] * rho2)
 
 
 def _gauss_transfer(grid: ChainGrid, sigma_px: float) -> np.ndarray:
@@ -365,11 +365,19 @@ def _apply_focal_spot_shape(state: ChainState, p: dict) -> None:
     state.transfer = state.transfer * np.cos(2.0 * np.pi * half_sep_px * f_axis)
 
 
+def _inverse_three_halves(t: np.ndarray) -> np.ndarray:
+    """``t ** -1.5`` for positive ``t`` (to rounding), in place in ``t``: a square root and a
+    product instead of ``pow`` (a third of the time on a padded 512² grid)."""
+    root = np.sqrt(t)
+    np.multiply(t, root, out=t)
+    return np.divide(1.0, t, out=t)
+
+
 def _apply_veiling_glare(state: ChainState, p: dict) -> None:
     g = state.grid
     w_px = _px(g, p["range_mm"])
     # PSF = (1 - eta) δ + eta K_w, K_w = exp(-r/w)/(2 pi w^2): MTF (1 + (2 pi w f)^2)^(-3/2).
-    mtf_tail = g.cached(("glare", w_px), lambda: (1.0 + (2.0 * np.pi * w_px) ** 2 * g.f2) ** -1.5)
+    mtf_tail = g.cached(("glare", w_px), lambda: _inverse_three_halves(1.0 + (2.0 * np.pi * w_px) ** 2 * g.f2))
     state.transfer = state.transfer * ((1.0 - p["eta"]) + p["eta"] * mtf_tail)
 
 
