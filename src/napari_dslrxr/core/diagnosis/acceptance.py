@@ -53,13 +53,19 @@ def _candidate_columns(problem: Problem, layout: Layout, x: np.ndarray, term: Ph
             h = probe[spec.name] - spec.null
             cols.append(problem.whiten_field((f_alone - f_null) / h * problem.wsqrt))
         return np.stack(cols, axis=1)
+    return forward_difference_columns(problem, base, terms, term, probe)
+
+
+def forward_difference_columns(problem: Problem, base: dict, terms: list, term: PhysicsTerm,
+                               probe: dict) -> np.ndarray:
+    """Whitened forward-difference columns of ``term``'s non-grid params at ``probe`` (each
+    stepping inside its prior range)."""
     f_probe = problem.model.expected(base, terms + [(term, probe)])
     cols = []
     for spec in term.params:
         if spec.is_grid:
             continue
         plus = dict(probe)
-        # forward difference, stepping inside the prior range
         h = spec.step if probe[spec.name] + spec.step <= spec.prior[1] else -spec.step
         plus[spec.name] += h
         f_plus = problem.model.expected(base, terms + [(term, plus)])

@@ -144,12 +144,12 @@ class Problem:
         # same numbers; writing each long column with a stride took twice as long)
         jac_t = np.empty((len(columns), f0.size))
         for row, j in enumerate(columns):
-            owner, key = layout.names[j]
-            self._jacobian_row(layout, x, sel, f0, base, mu, j, owner, key, jac_t[row])
+            self._jacobian_row(layout, x, sel, f0, base, mu, j, jac_t[row])
         return np.ascontiguousarray(jac_t.T)
 
-    def _jacobian_row(self, layout, x, sel, f0, base, mu, j, owner, key, out) -> None:
+    def _jacobian_row(self, layout, x, sel, f0, base, mu, j, out) -> None:
         """Column ``j`` of :meth:`jacobian`, written into ``out``."""
+        owner, key = layout.names[j]
         if owner == "base" and key == "offset_dn":
             out[:] = self.whiten_field(-self.wsqrt, sel)
         elif owner == "base" and key == "gain_dn":
@@ -232,21 +232,10 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
     while nfev < max_nfev:
         a = j.T @ j
         g = j.T @ r
-        at_low = (x <= lower) & (g > 0)
-        at_high = (x >= upper) & (g < 0)
-        free = ~(at_low | at_high)
-        if not free.any():
-            break
-        af, gf = a[np.ix_(free, free)], g[free]
-        diag = np.maximum(np.diag(af), 1e-30)
-        tol = max(1e-3, rel_tol * chi2)
+        free, predicted_gn = _gauss_newton_gain(a, g, x, lower, upper)
         # converged: no step can gain more than the Gauss-Newton step's prediction (the trial
         # steps at such a point only fail on rounding, each costing a model evaluation)
-        try:
-            predicted_gn = float(gf @ np.linalg.solve(af + 1e-12 * np.diag(diag), gf))
-        except np.linalg.LinAlgError:
-            predicted_gn = np.inf
-        if 0.0 <= predicted_gn < tol:
+        if not free.any() or 0.0 <= predicted_gn < max(1e-3, rel_tol * chi2):
             break
         accepted = False
         while nfev < max_nfev:
@@ -279,21 +268,27 @@ def levenberg_marquardt(fun, jac, x0, lower, upper, max_nfev: int, rel_tol: floa
     return x, chi2, j
 
 
+def _gauss_newton_gain(a, g, x, lower, upper) -> tuple[np.ndarray, float]:
+    """The free parameters (not at a bound their gradient points past) and the Gauss–Newton
+    step's predicted gain ``gᵀ(JᵀJ)⁻¹g`` over them (inf if singular), from ``a = JᵀJ`` and
+    ``g = Jᵀr``."""
+    free = ~(((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0)))
+    if not free.any():
+        return free, 0.0
+    af, gf = a[np.ix_(free, free)], g[free]
+    try:
+        return free, float(gf @ np.linalg.solve(af + 1e-12 * np.diag(np.maximum(np.diag(af), 1e-30)), gf))
+    except np.linalg.LinAlgError:
+        return free, np.inf
+
+
 def _converged_on(j, r, x, lower, upper, tol: float) -> bool:
     """The convergence test of :func:`levenberg_marquardt` (no step can gain ``tol``) at the new
     point ``x`` with residual ``r``, on the previous point's Jacobian ``j``: a step that close to
     the minimum barely changes it, and the test then spares a Jacobian the fit would only
     compute to find it has converged (with a tenth of the tolerance, for the approximation)."""
-    a, g = j.T @ j, j.T @ r
-    free = ~(((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0)))
-    if not free.any():
-        return True
-    af, gf = a[np.ix_(free, free)], g[free]
-    try:
-        predicted = float(gf @ np.linalg.solve(af + 1e-12 * np.diag(np.maximum(np.diag(af), 1e-30)), gf))
-    except np.linalg.LinAlgError:
-        return False
-    return 0.0 <= predicted < tol
+    free, predicted = _gauss_newton_gain(j.T @ j, j.T @ r, x, lower, upper)
+    return not free.any() or 0.0 <= predicted < tol
 
 
 def _bounded_step(a, g, x, lower, upper, free, lam, diag, max_rounds: int = 4) -> np.ndarray:
