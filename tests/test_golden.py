@@ -22,12 +22,17 @@ The expected hashes live in ``tests/golden_hashes.json``. After an intended chan
 regenerate them with ``DSLRXR_REGEN_GOLDEN=1 python -m pytest tests/test_golden.py`` and say in
 the commit why the outputs changed.
 
-The file also records the environment the hashes were made in (:func:`environment`: the
+Each set of hashes in the file records the environment it was made in (:func:`environment`: the
 numerical libraries' versions and the CPU's SIMD features numpy dispatches to). Floating-point
-results may differ in the last bit with either (a new OpenBLAS kernel, an AVX-512 sort), so
-outside that environment a changed hash cannot tell a code change from a library change: the test
-is then skipped with the differences named, instead of failing on code that did not change. The
-test environment is pinned (``requirements/test-constraints.txt``), so CI keeps one environment.
+results may differ in the last bit with either (a new OpenBLAS kernel, an AVX-512 sort), so the
+file keeps one set per environment the project runs in (this workplace's machine kinds: AVX2 and
+AVX-512 CPUs) and the test compares with the set of the environment it runs in. Where it has none,
+a changed hash cannot tell a code change from a library change: the test is then skipped with the
+differences from the nearest set named, instead of failing on code that did not change.
+``DSLRXR_REGEN_GOLDEN=1`` replaces this environment's set; when its hashes changed (the results
+did) or it had none, the other environments' sets are dropped, since they may no longer describe
+the code: regenerate on those machines too. ``DSLRXR_REGEN_GOLDEN=add`` adds a set for a new
+environment and keeps the others, for code whose outputs are unchanged where a set exists. The test environment is pinned (``requirements/test-constraints.txt``).
 """
 
 from __future__ import annotations
@@ -45,7 +50,9 @@ import pytest
 from scenes import PHANTOM_SCENE_TOML
 
 GOLDEN_FILE = Path(__file__).with_name("golden_hashes.json")
-REGENERATE = os.environ.get("DSLRXR_REGEN_GOLDEN") == "1"
+#: "1": regenerate this environment's set (after an intended change of results); "add": add a
+#: set for a new environment beside the others (the same code, checked on a machine that has a set).
+REGENERATE = os.environ.get("DSLRXR_REGEN_GOLDEN", "")
 
 #: JSON keys dropped before hashing, and why: run times differ from run to run ("timings_s",
 #: "elapsed_s", "seconds"; "fit_time_s" of older psf.json files); the package and library versions
@@ -94,7 +101,8 @@ def environment_differences(recorded: dict | None, current: dict) -> list[str]:
     gone = sorted(set(recorded["cpu_features"]) - set(current["cpu_features"]))
     new = sorted(set(current["cpu_features"]) - set(recorded["cpu_features"]))
     if gone or new:
-        out.append(f"CPU features {'-' + ','.join(gone) if gone else ''}{' +' + ','.join(new) if new else ''}")
+        out.append(" ".join(["CPU features", *(["-" + ",".join(gone)] if gone else []),
+                             *(["+" + ",".join(new)] if new else [])]))
     return out
 
 
@@ -162,22 +170,84 @@ def produced(tmp_path_factory) -> dict[str, str]:
     return produce_outputs(tmp_path_factory.mktemp("golden"))
 
 
+def read_golden_sets(path: Path = GOLDEN_FILE) -> list[dict]:
+    """The file's hash sets, each ``{"environment": ..., "hashes": ...}`` (the older one-set layout
+    is read as a list of one)."""
+    if not path.exists():
+        return []
+    record = json.loads(path.read_text(encoding="utf-8"))
+    return record["sets"] if "sets" in record else [record]
+
+
+def with_regenerated_set(sets: list[dict], here: dict, produced: dict[str, str], *, add: bool = False) -> list[dict]:
+    """The sets after regenerating in environment ``here``: its own set replaced or added; the
+    other environments' sets kept only when this environment's hashes did not change (the same
+    results, so theirs still hold) or with ``add`` (a new environment for unchanged code), sorted
+    so the file's bytes do not depend on the order."""
+    own = [s for s in sets if s["environment"] == here]
+    keep_others = add or (bool(own) and own[0]["hashes"] == produced)
+    others = [s for s in sets if s["environment"] != here] if keep_others else []
+    new = [*others, {"environment": here, "hashes": produced}]
+    return sorted(new, key=lambda s: json.dumps(s["environment"], sort_keys=True))
+
+
+def set_for(sets: list[dict], here: dict) -> tuple[dict | None, list[str]]:
+    """The set made in environment ``here``, or None and what differs from the nearest set."""
+    for candidate in sets:
+        if not environment_differences(candidate["environment"], here):
+            return candidate, []
+    nearest = min((environment_differences(s.get("environment"), here) for s in sets), key=len,
+                  default=["the file holds no hashes"])
+    return None, nearest
+
+
 @pytest.mark.slow
 def test_outputs_match_the_golden_hashes(produced):
-    if REGENERATE:
-        record = {"hashes": produced, "environment": environment()}
+    here = environment()
+    sets = read_golden_sets()
+    if REGENERATE in ("1", "add"):
+        record = {"sets": with_regenerated_set(sets, here, produced, add=REGENERATE == "add")}
         GOLDEN_FILE.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-        pytest.skip(f"regenerated {GOLDEN_FILE.name}")
-    golden = json.loads(GOLDEN_FILE.read_text(encoding="utf-8"))
+        pytest.skip(f"regenerated {GOLDEN_FILE.name} ({len(record['sets'])} environment(s))")
+    golden, differences = set_for(sets, here)
+    if golden is None:
+        pytest.skip(f"no golden hashes for this environment ({'; '.join(differences)}): regenerate here "
+                    "with DSLRXR_REGEN_GOLDEN=add, on code whose outputs match a set elsewhere")
     expected = golden["hashes"]
     assert set(produced) == set(expected)
     changed = sorted(name for name in expected if produced[name] != expected[name])
-    if changed:
-        differences = environment_differences(golden.get("environment"), environment())
-        if differences:
-            pytest.skip(f"outputs {changed} differ from hashes made in another environment "
-                        f"({'; '.join(differences)}): regenerate here after checking the change")
     assert not changed, f"outputs changed: {changed} (regenerate with DSLRXR_REGEN_GOLDEN=1 if intended)"
+
+
+def test_regenerating_keeps_other_environments_only_for_the_same_results():
+    here = environment()
+    other = {"libraries": here["libraries"], "cpu_features": [*here["cpu_features"], "AVX512X"]}
+    old = {"a.tif": "1", "b.json": "2"}
+    sets = [{"environment": other, "hashes": {"a.tif": "9", "b.json": "8"}}, {"environment": here, "hashes": old}]
+    # same results here: the other machine's set still describes the code
+    kept = with_regenerated_set(sets, here, dict(old))
+    assert len(kept) == 2 and set_for(kept, other)[0]["hashes"] == {"a.tif": "9", "b.json": "8"}
+    # changed results: the other set is stale and goes; that environment then skips, naming why
+    changed = with_regenerated_set(sets, here, {"a.tif": "1", "b.json": "3"})
+    assert changed == [{"environment": here, "hashes": {"a.tif": "1", "b.json": "3"}}]
+    missing, why = set_for(changed, other)
+    assert missing is None and why == ["CPU features +AVX512X"]
+    # a first set in a new environment: beside the others when asked to add, alone otherwise
+    elsewhere = [s for s in sets if s["environment"] == other]
+    assert with_regenerated_set(elsewhere, here, old, add=True) == kept
+    assert with_regenerated_set(elsewhere, here, old) == [{"environment": here, "hashes": old}]
+    # the file's order does not depend on the order of regeneration
+    assert with_regenerated_set(sets[::-1], here, dict(old)) == kept
+
+
+def test_the_golden_file_holds_sets_with_environments():
+    sets = read_golden_sets()
+    assert sets, "tests/golden_hashes.json holds no hash set"
+    for candidate in sets:
+        assert set(candidate) == {"environment", "hashes"}
+        assert {"libraries", "cpu_features"} <= set(candidate["environment"])
+    environments = [json.dumps(s["environment"], sort_keys=True) for s in sets]
+    assert len(set(environments)) == len(environments), "two sets for one environment"
 
 
 def test_environment_differences_name_what_changed():
