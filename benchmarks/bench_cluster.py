@@ -284,20 +284,23 @@ def _two_commands(common_files: list[str], reference: list[str], out: Path) -> d
     prepares the flat/dark reference itself, which the schedulers do once)."""
     load_before = os.getloadavg()[0]
     halves = [common_files[0::2], common_files[1::2]]
+    logs = [tempfile.TemporaryFile("w+") for _ in halves]  # not pipes: a full pipe would stall a command
     t0 = time.perf_counter()
-    procs = [subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", "run", *half, *reference, "-o", str(out),
-                               "--jobs", "1"], stderr=subprocess.PIPE, text=True) for half in halves]
+    procs = {subprocess.Popen([sys.executable, "-m", "napari_dslrxr.cli", "run", *half, *reference, "-o", str(out),
+                               "--jobs", "1"], stderr=log, text=True).pid: log for half, log in zip(halves, logs)}
     cpu, ended = 0.0, []
-    for proc in procs:
-        stderr = proc.stderr.read()
-        _, status, usage = os.wait4(proc.pid, 0)
+    for _ in procs:  # in the order they end
+        pid, status, usage = os.wait4(-1, 0)
         ended.append(time.perf_counter() - t0)
         if os.waitstatus_to_exitcode(status) != 0:
-            raise SystemExit(f"dslrxr run (two commands) failed:\n{stderr}")
+            procs[pid].seek(0)
+            raise SystemExit(f"dslrxr run (two commands) failed:\n{procs[pid].read()}")
         cpu += usage.ru_utime + usage.ru_stime
+    for log in logs:
+        log.close()
     wall = max(ended)
     return {"wall_s": round(wall, 2), "cpu_s": round(cpu, 1), "cores_busy_on_average": round(cpu / wall, 2),
-            "commands_ended_at_s": [round(t, 2) for t in ended],
+            "commands_ended_at_s": [round(t, 2) for t in ended], "stage_s_summed_over_files": _stage_seconds(out),
             "load_average_1min_before": round(load_before, 2), "load_average_1min_after": round(os.getloadavg()[0], 2)}
 
 
