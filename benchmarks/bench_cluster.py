@@ -29,7 +29,7 @@ reference, or at the end while the other finishes). When each file was reported 
 Every mode runs ``--rounds`` times (default 2) in ABBA order (``--jobs 1``, pool, cluster, then
 cluster, pool, ``--jobs 1``), and throughput comes from each mode's mean wall time: this
 machine's speed drifts by 15-20 % within minutes (the CPU time of the same ``--jobs 1`` work
-varied that much between two runs five minutes apart), which a single run in fixed order puts on
+varied that much between two runs eight minutes apart), which a single run in fixed order puts on
 whichever mode ran in the slow minutes. ``--two-commands`` adds two ``--jobs 1`` commands run at
 once on half the files each (no scheduler at all). Last, code-independent kernels (an interpreter
 loop, streaming adds, random gathers) run alone and as two processes at once
@@ -306,7 +306,8 @@ def _two_commands(common_files: list[str], reference: list[str], out: Path) -> d
 
 # Code-independent kernels, each run alone and then as two processes at once: how much of two cores
 # this machine delivers to work with no shared state (the host's other tenants, shared caches and
-# memory bandwidth, clock boost on one busy core). The pipeline's parallel runs cannot beat these.
+# memory bandwidth, clock boost on one busy core). Run minutes after the pipeline's runs, they tell the
+# machine's state then, not a bound on those runs.
 _KERNELS = {  # name: (set-up, timed work)
     # integer arithmetic in the interpreter: registers and L1 only
     "python_loop": ("s = 0", "for i in range(25_000_000):\n    s += i * i % 7"),
@@ -359,6 +360,8 @@ def main() -> int:
     parser.add_argument("--no-machine", action="store_true", help="skip the code-independent kernels")
     parser.add_argument("--no-record", action="store_true", help="print only (a partial or proxy run)")
     opts = parser.parse_args()
+    if opts.rounds < 1:
+        parser.error("--rounds must be at least 1")
     shape = (opts.height, opts.width)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
