@@ -184,9 +184,12 @@ def with_regenerated_set(sets: list[dict], here: dict, produced: dict[str, str],
     other environments' sets kept only when this environment's hashes did not change (the same
     results, so theirs still hold) or with ``add`` (a new environment for unchanged code), sorted
     so the file's bytes do not depend on the order."""
-    own = [s for s in sets if s["environment"] == here]
+    def is_here(candidate: dict) -> bool:
+        return not environment_differences(candidate.get("environment"), here)
+
+    own = [s for s in sets if is_here(s)]
     keep_others = add or (bool(own) and own[0]["hashes"] == produced)
-    others = [s for s in sets if s["environment"] != here] if keep_others else []
+    others = [s for s in sets if not is_here(s)] if keep_others else []
     new = [*others, {"environment": here, "hashes": produced}]
     return sorted(new, key=lambda s: json.dumps(s["environment"], sort_keys=True))
 
