@@ -31,8 +31,10 @@ a changed hash cannot tell a code change from a library change: the test is then
 differences from the nearest set named, instead of failing on code that did not change.
 ``DSLRXR_REGEN_GOLDEN=1`` replaces this environment's set; when its hashes changed (the results
 did) or it had none, the other environments' sets are dropped, since they may no longer describe
-the code: regenerate on those machines too. ``DSLRXR_REGEN_GOLDEN=add`` adds a set for a new
-environment and keeps the others, for code whose outputs are unchanged where a set exists. The test environment is pinned (``requirements/test-constraints.txt``).
+the code: regenerate on those machines too. ``DSLRXR_REGEN_GOLDEN=add`` adds a set for an
+environment that has none and keeps the others, for code whose outputs are unchanged where a set
+exists (where this environment has a set, it acts as ``1``). The test environment is pinned
+(``requirements/test-constraints.txt``).
 """
 
 from __future__ import annotations
@@ -171,25 +173,25 @@ def produced(tmp_path_factory) -> dict[str, str]:
 
 
 def read_golden_sets(path: Path = GOLDEN_FILE) -> list[dict]:
-    """The file's hash sets, each ``{"environment": ..., "hashes": ...}`` (the older one-set layout
-    is read as a list of one)."""
+    """The file's hash sets, each ``{"environment": ..., "hashes": ...}``; none without a file."""
     if not path.exists():
         return []
-    record = json.loads(path.read_text(encoding="utf-8"))
-    return record["sets"] if "sets" in record else [record]
+    return json.loads(path.read_text(encoding="utf-8"))["sets"]
+
+
+def made_in(candidate: dict, here: dict) -> bool:
+    """Whether a hash set was made in environment ``here`` (same libraries and CPU features)."""
+    return not environment_differences(candidate.get("environment"), here)
 
 
 def with_regenerated_set(sets: list[dict], here: dict, produced: dict[str, str], *, add: bool = False) -> list[dict]:
     """The sets after regenerating in environment ``here``: its own set replaced or added; the
     other environments' sets kept only when this environment's hashes did not change (the same
-    results, so theirs still hold) or with ``add`` (a new environment for unchanged code), sorted
-    so the file's bytes do not depend on the order."""
-    def is_here(candidate: dict) -> bool:
-        return not environment_differences(candidate.get("environment"), here)
-
-    own = [s for s in sets if is_here(s)]
-    keep_others = add or (bool(own) and own[0]["hashes"] == produced)
-    others = [s for s in sets if not is_here(s)] if keep_others else []
+    results, so theirs still hold) or, with ``add``, when it had no set (a new environment for
+    unchanged code), sorted so the file's bytes do not depend on the order."""
+    own = [s for s in sets if made_in(s, here)]
+    keep_others = own[0]["hashes"] == produced if own else add
+    others = [s for s in sets if not made_in(s, here)] if keep_others else []
     new = [*others, {"environment": here, "hashes": produced}]
     return sorted(new, key=lambda s: json.dumps(s["environment"], sort_keys=True))
 
@@ -197,7 +199,7 @@ def with_regenerated_set(sets: list[dict], here: dict, produced: dict[str, str],
 def set_for(sets: list[dict], here: dict) -> tuple[dict | None, list[str]]:
     """The set made in environment ``here``, or None and what differs from the nearest set."""
     for candidate in sets:
-        if not environment_differences(candidate["environment"], here):
+        if made_in(candidate, here):
             return candidate, []
     nearest = min((environment_differences(s.get("environment"), here) for s in sets), key=len,
                   default=["the file holds no hashes"])
@@ -239,6 +241,8 @@ def test_regenerating_keeps_other_environments_only_for_the_same_results():
     elsewhere = [s for s in sets if s["environment"] == other]
     assert with_regenerated_set(elsewhere, here, old, add=True) == kept
     assert with_regenerated_set(elsewhere, here, old) == [{"environment": here, "hashes": old}]
+    # "add" where this environment has a set with other results: the other sets are stale too
+    assert with_regenerated_set(sets, here, {"a.tif": "1", "b.json": "3"}, add=True) == changed
     # the file's order does not depend on the order of regeneration
     assert with_regenerated_set(sets[::-1], here, dict(old)) == kept
 
