@@ -176,16 +176,20 @@ def _count_variance(values: np.ndarray, model: "_NoiseModel | None") -> np.ndarr
     if model is None or model.a <= 0:
         out += _FLOAT(1e-12)
         return out
-    below = None
+    below = scaled = None
     if math.isfinite(model.dark_level) and model.dark_level > 0:
         below = out < _FLOAT(model.dark_level)
-        var_at_dark = max(model.a * model.dark_level + model.b, model.var_floor, 1e-12)
-        scaled_below = out[below] * _FLOAT(var_at_dark / model.dark_level)
+        if below.any():
+            # The whole block scaled and copied where below: a boolean gather and scatter of
+            # the dark pixels took 1.5x as long on 24 Mpx frames (same values).
+            var_at_dark = max(model.a * model.dark_level + model.b, model.var_floor, 1e-12)
+            scaled = np.multiply(out, _FLOAT(var_at_dark / model.dark_level))
+            np.maximum(scaled, _FLOAT(1e-12), out=scaled)
     out *= _FLOAT(model.a)
     out += _FLOAT(model.b)
     np.maximum(out, _FLOAT(max(model.var_floor, 1e-12)), out=out)
-    if below is not None:
-        out[below] = np.maximum(scaled_below, _FLOAT(1e-12))
+    if scaled is not None:
+        np.copyto(out, scaled, where=below)
     return out
 
 
