@@ -30,6 +30,21 @@ def _median3(x: np.ndarray) -> np.ndarray:
     return cv2.medianBlur(np.ascontiguousarray(x, dtype=_FLOAT), 3)
 
 
+def _noise_level(v: np.ndarray) -> np.ndarray:
+    """Level of V that sets a pixel's count noise in the S and H weights (float32, new array):
+    the lower of the pixel's own value and its 3x3 median.
+
+    The median keeps a pixel's own noise from raising its own weight (a count high by
+    chance would), but on fine texture (a mesh's dark nodes, 2-5 px periods) it is set by
+    brighter neighbours and overstates the pixel's precision: tinted frames filled with a
+    mesh had 0.2-0.8 % of their pixels flagged in H and S there (docs/impulse.md). The
+    lower of the two never promises more precision than either estimate.
+    """
+    level = _median3(v)
+    np.minimum(level, v, out=level)
+    return level
+
+
 def _saturation_weight(s: np.ndarray, v: np.ndarray, model: _NoiseModel | None) -> np.ndarray:
     """Inverse noise of the saturation, normalised to a median of 1 (float32, new array).
 
@@ -149,8 +164,9 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams, steps: Steps) -> Impul
     # to a median of 1), so that one constant Gaussian variance fits the whole image, the
     # dark surround of the screen (read noise over a black level) included.
     # The weights use 3x3 medians of S and V: a pixel's own noise must not set its own
-    # weight (a count low by chance raises S and would also raise its weight).
-    v_local = _median3(v_new)
+    # weight (a count low by chance raises S and would also raise its weight). For V the
+    # lower of the median and the pixel's own value (_noise_level: fine texture).
+    v_local = _noise_level(v_new)
     s_local = _median3(s)
     weight_s = _saturation_weight(s_local, v_local, model_v)
     del v_local  # recomputed for the hue (memory: 24 Mpx frames)
@@ -178,7 +194,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams, steps: Steps) -> Impul
     h_rot -= np.floor(h_rot)
     # Hue noise: sqrt(Var[V]) / (V S) (the hexcone hue is a difference of two channels over
     # max - min = V S).
-    v_local = _median3(v_new)
+    v_local = _noise_level(v_new)
     weight_h = _count_variance(v_local, model_v)
     np.sqrt(weight_h, out=weight_h)
     np.divide(v_local, weight_h, out=weight_h)
