@@ -57,8 +57,10 @@ pixel, the annulus 4 to 6 px away must not be busy, busy meaning residuals to th
 median of at least 0.4 of the pixel's own (or beyond 3 noise sigmas). A pulse of up to
 5x5 px never reaches the annulus and a track crosses it in two places; periodic structure
 fills it. The EM sample avoids busy areas too, since a median flattens fine texture.
-On raw CFA planes one busy side of the annulus is enough (a pattern's border, which a dim
-plane holds aliased at a few noise sigmas); see ``detection._textured_side``.
+One busy side of the annulus is enough (a pattern's border): on raw CFA planes any busy
+side (a dim plane holds patterns aliased at a few noise sigmas), in grey and V a side busy
+with residuals of both signs (a neighbouring pulse's are one-signed); see
+``detection._textured_side``.
 
 Polarity (``spots``): bright pulses (direct hits), dark ones (a hit in the open beam turned
 dark by normalisation) or both, on the photon-counting channels.

@@ -42,7 +42,7 @@ def remove_impulses_cfa(planes: np.ndarray, params: ImpulseParams | None = None)
         cleaned, mask, model = _clean_channel(plane.astype(_FLOAT), passes=params.passes_grey,
                                               params=params, photon_counting=True,
                                               polarity=_POLARITY_SIGN[params.spots],
-                                              faint_pulses=False, texture_sides=True,
+                                              faint_pulses=False, texture_sides="one_signed",
                                               inflation_limit=_RAW_INFLATION_LIMIT)
         if mask.any():
             out[i][mask] = _to_dtype(cleaned[mask].astype(np.float64), arr.dtype)

@@ -156,7 +156,8 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams, steps: Steps) -> Impul
     # V first: bright zingers are clearest there, and a cleaner V defines the hue mask better.
     v_new, mask_v, model_v = _clean_channel(v, passes=params.passes_v, params=params,
                                             photon_counting=True, polarity=_POLARITY_SIGN[params.spots],
-                                            in_place=True, steps=steps, channels=image)
+                                            in_place=True, steps=steps, channels=image,
+                                            texture_sides="two_signed")
     _store("V", mask_v, model_v, True)
     # S and H are ratios of photon counts. Their noise follows from that of the counts,
     # Var[c] = G (c - o) + sigma_e^2 (V's fitted model, read-noise floor included; see

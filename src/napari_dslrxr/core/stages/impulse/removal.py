@@ -76,7 +76,7 @@ def _remove_grey(image: np.ndarray, params: ImpulseParams, steps: Steps) -> Impu
     x = image.astype(_FLOAT)
     cleaned, mask, model = _clean_channel(x, passes=params.passes_grey, params=params,
                                           photon_counting=True, polarity=_POLARITY_SIGN[params.spots],
-                                          steps=steps)
+                                          texture_sides="two_signed", steps=steps)
     out = image.copy()
     if mask.any():
         # Only pulse pixels are written: medians computed in float32 (exact for integer
@@ -91,7 +91,8 @@ def _remove_grey_of_rgb(image: np.ndarray, params: ImpulseParams, steps: Steps) 
     """Detect on the channel sum (still photon counting) and replace R, G, B at the pulses."""
     grey = image.astype(_FLOAT).sum(axis=2)
     _, mask, model = _clean_channel(grey, passes=params.passes_grey, params=params,
-                                    photon_counting=True, polarity=_POLARITY_SIGN[params.spots], steps=steps)
+                                    photon_counting=True, polarity=_POLARITY_SIGN[params.spots],
+                                    texture_sides="two_signed", steps=steps)
     out = image.copy()
     if mask.any():
         rows, cols = np.nonzero(mask)
