@@ -59,8 +59,9 @@ median of at least 0.4 of the pixel's own (or beyond 3 noise sigmas). A pulse of
 fills it. The EM sample avoids busy areas too, since a median flattens fine texture.
 One busy side of the annulus is enough (a pattern's border): on raw CFA planes any busy
 side (a dim plane holds patterns aliased at a few noise sigmas), in grey and V a side busy
-with residuals of both signs (a neighbouring pulse's are one-signed); see
-``detection._textured_side``.
+with residuals of both signs (a neighbouring pulse's are one-signed); on both, also a side
+whose image is curved throughout (a pattern the sparse median matches); see
+``detection._textured_side`` and ``detection._curved_side``.
 
 Polarity (``spots``): bright pulses (direct hits), dark ones (a hit in the open beam turned
 dark by normalisation) or both, on the photon-counting channels.

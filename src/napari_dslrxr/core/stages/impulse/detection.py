@@ -20,6 +20,7 @@ from .neighbourhoods import (
     _sorted_unique,
     _square_ring_spread,
     _window_flat_indices,
+    _window_values,
     _subsample_indices,
     _window_offsets,
 )
@@ -150,6 +151,23 @@ _SIDE_NOISY_FRACTION = 0.2
 #: pixels and clusters next to other pulses); on CFA planes the two-signed rule lets the
 #: aliased patterns' borders through (dev 0.007 -> 0.079 %).
 _SIDE_MIN_SIGN_SHARE = 1.0 / 3.0
+#: A side is also texture when more than ``_CURVED_SIDE_FRACTION`` of its pixels have a
+#: second difference of the image (along rows or columns, whichever is larger) beyond
+#: ``_CURVED_SIGMAS`` of its noise (:func:`_curved_side`). Why: lines within a few degrees of
+#: the rows or columns with a period of 2.2-2.5 px are matched by the sparse detection median
+#: (samples 2 px apart, nearly a period), so their residual is small inside the pattern and
+#: the pattern's border line stood alone (0.3-1.3 % of such patches flagged; CFA planes,
+#: whose planes alias finer patterns there, up to 1.6 %). The image's own curvature does not
+#: depend on that sampling. Chosen on the development seeds and the NIQA frames (0.5: NIQA
+#: spot removal 0.2-0.7 points lower, dense spots filling a side; 0.7: dev patterns inside a
+#: radiograph 0.014 % max against 0.006 % at 0.6).
+_CURVED_SIGMAS = 3.0
+_CURVED_SIDE_FRACTION = 0.6
+#: ...and a curved pixel's second difference must be at least this times the seed's own
+#: residual, so that a pulse far above the texture's own swing (a strong hit on a mesh)
+#: stays a pulse, as ``_STANDOUT_RELATIVE`` keeps it for the whole annulus. Without it,
+#: strong pulses on a frame filled with a mesh were all dropped (recall 0).
+_CURVED_RELATIVE = 1.0
 
 _FOOTPRINTS = None  # set below, once the helpers are defined
 
@@ -289,7 +307,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
             seeds = seeds[_unpredicted(x, seeds, predictor, model, params, fast_residual, residual_weight,
                                        residual_factor)]
         steps.advance()
-        seeds = seeds[~_in_texture(fast_residual, seeds, x, model, check=steps.check, sides=texture_sides)]
+        seeds = seeds[~_in_texture(fast_residual, seeds, x, model, check=steps.check, sides=texture_sides,
+                                   residual_factor=residual_factor)]
         steps.advance()
         pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch,
                                fast_residual, near_scratch, check=steps.check, strong_rims=faint_pulses)
@@ -685,7 +704,8 @@ def _noisy_annulus(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model:
 
 def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_NoiseModel",
                 reference: np.ndarray | None = None, ignore: np.ndarray | None = None,
-                chunk: int = _CHUNK_PX, check=None, sides: str | None = None) -> np.ndarray:
+                chunk: int = _CHUNK_PX, check=None, sides: str | None = None,
+                residual_factor: float = MEDIAN_RESIDUAL_VARIANCE_FACTOR[3]) -> np.ndarray:
     """True where the annulus around a pixel is busier than a pulse's can be (texture guard).
 
     ``residual``: the fast-median residual map of :func:`_prefilter`; ``pixels``: flat
@@ -697,7 +717,8 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
     the pulse pulls up). Fewer than a third of the annulus left: not texture. ``check``
     (optional) is called between chunks (a progress report that may stop the stage).
     ``sides``: also one busy side of the annulus (:func:`_textured_side`; ``"one_signed"``
-    or ``"two_signed"``), or None.
+    or ``"two_signed"``) or one curved side (:func:`_curved_side`; ``residual_factor``: the
+    model's variance over a pixel's), or None.
     """
     out = np.zeros(pixels.size, bool)
     if pixels.size == 0:
@@ -748,6 +769,9 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
         if sides is not None:
             positive = around_signed > 0 if sides == "two_signed" else None
             busy |= _textured_side(busy_px, noisy, counted, standout, positive)
+            rest = np.flatnonzero(~busy)
+            if rest.size:
+                busy[rest] = _curved_side(x, rows[rest], cols[rest], own[rest], model, residual_factor)
         out[start:start + chunk] = busy
     return out
 
@@ -779,6 +803,37 @@ def _textured_side(busy_px: np.ndarray, noisy_px: np.ndarray, counted: np.ndarra
             rel &= two_signed(busy_px, side)
             noisy &= two_signed(noisy_px, side)
         out |= enough & (rel | noisy)
+    return out
+
+
+def _curved_side(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, own: np.ndarray, model: _NoiseModel,
+                 residual_factor: float) -> np.ndarray:
+    """True where one side of the texture guard's annulus around (``rows``, ``cols``) is
+    mostly curved: more than ``_CURVED_SIDE_FRACTION`` of its pixels have a second
+    difference of ``x`` beyond ``_CURVED_SIGMAS`` of its noise (6 pixel variances, the
+    pixel's variance read from ``model`` at its own value) and of at least
+    ``_CURVED_RELATIVE`` times the pixel's own residual ``own`` (a strong pulse on texture
+    stands above the texture's curvature). Fine periodic texture is curved everywhere; a
+    pulse of up to 5x5 px covers at most 15 of a side's 39 pixels."""
+    size = 2 * _TEXTURE_OUTER_PX + 3  # the annulus's window and a 1-px margin
+    win = _window_values(x, rows, cols, size).reshape(rows.size, size, size)
+    centre = win[:, 1:-1, 1:-1]
+    across_rows = win[:, :-2, 1:-1] + win[:, 2:, 1:-1]
+    across_rows -= 2 * centre
+    across_cols = win[:, 1:-1, :-2] + win[:, 1:-1, 2:]
+    across_cols -= 2 * centre
+    np.multiply(across_rows, across_rows, out=across_rows)
+    np.multiply(across_cols, across_cols, out=across_cols)
+    np.maximum(across_rows, across_cols, out=across_rows)
+    curvature2 = across_rows.reshape(rows.size, -1)[:, _ANNULUS_ON]
+    centre = centre.reshape(rows.size, -1)[:, _ANNULUS_ON]
+    noise2 = model.variance(centre) if model.a > 0 else max(model.b, model.var_floor)
+    curved = curvature2 > _FLOAT(_CURVED_SIGMAS ** 2 * 6.0 / residual_factor) * noise2
+    own_part = (_FLOAT(_CURVED_RELATIVE) * own.astype(_FLOAT)) ** 2
+    curved &= curvature2 > own_part[:, None]
+    out = np.zeros(rows.size, bool)
+    for side in _ANNULUS_SIDES:
+        out |= np.count_nonzero(curved[:, side], axis=1) > _CURVED_SIDE_FRACTION * np.count_nonzero(side)
     return out
 
 
@@ -1268,5 +1323,8 @@ def _annulus_sides() -> list[np.ndarray]:
 
 
 _ANNULUS_SIDES = _annulus_sides()
+#: The annulus's positions in its (2 _TEXTURE_OUTER_PX + 1)^2 window, row-major.
+_ANNULUS_ON = np.flatnonzero(np.maximum(*map(np.abs, _window_offsets(2 * _TEXTURE_OUTER_PX + 1)))
+                             >= _TEXTURE_INNER_PX)
 _FOOTPRINTS = _footprint_kernels()
 _REPEAT_SHIFTS = _repeat_shifts()
