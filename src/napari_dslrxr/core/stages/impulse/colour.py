@@ -45,6 +45,27 @@ def _noise_level(v: np.ndarray) -> np.ndarray:
     return level
 
 
+def _weight_model(model_v: _NoiseModel | None, v: np.ndarray) -> _NoiseModel | None:
+    """V's noise model for the S and H weights, or None (plain Poisson, variance proportional
+    to the counts) when its line is not credible on this frame.
+
+    The weights use only the shape of the count variance. A line ``a c + b`` with ``b < 0``
+    reaches zero at ``-b/a``, the camera's offset less a little; where a frame's V lies well
+    below that (its 1st percentile more than 3 read-noise sigmas lower), the line was set by
+    something other than the offset: V's fit on a frame filled with a mesh (levels of one
+    narrow range, texture in the residual) gave a zero at 316 counts on a frame whose mesh
+    nodes hold 95, which made the nodes' variance the floor and their H weight too high
+    (0.57 % of that frame flagged in H).
+    """
+    if model_v is None or model_v.a <= 0 or model_v.b >= 0:
+        return model_v
+    step_r, step_c = max(1, v.shape[0] // 512), max(1, v.shape[1] // 512)
+    darkest = float(np.percentile(v[::step_r, ::step_c], 1))
+    if -model_v.b / model_v.a > darkest + 3.0 * math.sqrt(max(model_v.var_floor, 0.0)):
+        return None
+    return model_v
+
+
 def _saturation_weight(s: np.ndarray, v: np.ndarray, model: _NoiseModel | None) -> np.ndarray:
     """Inverse noise of the saturation, normalised to a median of 1 (float32, new array).
 
@@ -167,9 +188,10 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams, steps: Steps) -> Impul
     # The weights use 3x3 medians of S and V: a pixel's own noise must not set its own
     # weight (a count low by chance raises S and would also raise its weight). For V the
     # lower of the median and the pixel's own value (_noise_level: fine texture).
+    weight_model = _weight_model(model_v, v_new)
     v_local = _noise_level(v_new)
     s_local = _median3(s)
-    weight_s = _saturation_weight(s_local, v_local, model_v)
+    weight_s = _saturation_weight(s_local, v_local, weight_model)
     del v_local  # recomputed for the hue (memory: 24 Mpx frames)
     # The first-order propagation holds where max - min is well above its noise; in the
     # unsaturated dark surround S is the range of three nearly equal noisy counts and the
@@ -196,7 +218,7 @@ def _remove_hsv(image: np.ndarray, params: ImpulseParams, steps: Steps) -> Impul
     # Hue noise: sqrt(Var[V]) / (V S) (the hexcone hue is a difference of two channels over
     # max - min = V S).
     v_local = _noise_level(v_new)
-    weight_h = _count_variance(v_local, model_v)
+    weight_h = _count_variance(v_local, weight_model)
     np.sqrt(weight_h, out=weight_h)
     np.divide(v_local, weight_h, out=weight_h)
     del v_local
