@@ -285,14 +285,9 @@ def test_fine_texture_without_pulses_is_not_touched(rng, kind, period_px, angle_
     assert np.count_nonzero(found & truth) >= 0.6 * truth.sum()
 
 
-@pytest.mark.parametrize("period_px, angle_deg, low, high", [(2.6, 178.0, 800.0, 4000.0), (2.7, 3.0, 500.0, 2500.0),
-                                                             (5.0, 1.0, 400.0, 2500.0)])
-def test_border_of_a_near_axis_line_pattern_is_not_taken_for_tracks(period_px, angle_deg, low, high):
-    """Lines within a few degrees of the columns, inside a smooth radiograph, the whole patch
-    counted, its border too (camera gain 1.5, read noise 2.5 counts): the border column is a
-    bright line segment against the unpatterned side, which only one side of the texture
-    guard's annulus sees. Before the grey path took the annulus's sides, 0.03-0.78 % of these
-    patches were flagged along their first and last columns."""
+def _line_patch_flagged(period_px, angle_deg, low, high) -> list[float]:
+    """Share of a 128 px line-pattern patch flagged (grey) inside a smooth radiograph, for
+    three seeds (camera gain 1.5, read noise 2.5 counts)."""
     flagged = []
     for seed in (1, 2, 3):
         rng = np.random.default_rng([seed, 31])
@@ -303,6 +298,18 @@ def test_border_of_a_near_axis_line_pattern_is_not_taken_for_tracks(period_px, a
         counts = 1.5 * rng.poisson(light / 1.5) + rng.normal(0.0, 2.5, light.shape)
         image = np.clip(np.rint(counts), 0, 65535).astype(np.uint16)
         flagged.append(float(remove_impulses(image).masks["grey"][patch].mean()))
+    return flagged
+
+
+@pytest.mark.parametrize("period_px, angle_deg, low, high", [(2.6, 178.0, 800.0, 4000.0), (2.7, 3.0, 500.0, 2500.0),
+                                                             (5.0, 1.0, 400.0, 2500.0)])
+def test_border_of_a_near_axis_line_pattern_is_not_taken_for_tracks(period_px, angle_deg, low, high):
+    """Lines within a few degrees of the columns, inside a smooth radiograph, the whole patch
+    counted, its border too (camera gain 1.5, read noise 2.5 counts): the border column is a
+    bright line segment against the unpatterned side, which only one side of the texture
+    guard's annulus sees. Before the grey path took the annulus's sides, 0.03-0.78 % of these
+    patches were flagged along their first and last columns."""
+    flagged = _line_patch_flagged(period_px, angle_deg, low, high)
     assert max(flagged) <= 0.0005, flagged
 
 
@@ -312,16 +319,7 @@ def test_border_of_a_pattern_matched_by_the_sparse_median_is_not_taken_for_track
     match the pattern, so its residual inside is small and only the image's own curvature shows
     the texture beside the border line (0.26-1.6 % of such patches were flagged before the
     curved-side test; now at most 0.08 %, above the 0.05 % target on some seeds)."""
-    flagged = []
-    for seed in (1, 2, 3):
-        rng = np.random.default_rng([seed, 31])
-        light = smooth_scene((256, 256), low=400, high=2500)
-        patch = (slice(64, 192), slice(64, 192))
-        pattern = grating((128, 128), period_px, angle_deg, phase=rng.uniform(0, 6.3))
-        light[patch] *= pattern / pattern.mean()
-        counts = 1.5 * rng.poisson(light / 1.5) + rng.normal(0.0, 2.5, light.shape)
-        image = np.clip(np.rint(counts), 0, 65535).astype(np.uint16)
-        flagged.append(float(remove_impulses(image).masks["grey"][patch].mean()))
+    flagged = _line_patch_flagged(period_px, angle_deg, 400.0, 2500.0)
     assert max(flagged) <= 0.001, flagged
 
 
