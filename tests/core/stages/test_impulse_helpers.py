@@ -102,25 +102,3 @@ def test_exact_test_skipping_the_spread_where_it_cannot_matter_gives_the_same_se
     np.testing.assert_array_equal(got, ref)
     assert 100 < ref.size < x.size // 10
 
-
-def test_weight_model_drops_a_variance_line_that_is_zero_above_the_darkest_counts():
-    """The S and H weights use V's count-variance line only where it is credible: a line
-    reaching zero at a camera's offset (a black level of 512 under a dark surround) is kept;
-    one reaching zero at 316 counts on a frame whose darkest pixels hold 95 (V's fit on a
-    frame filled with a mesh) is replaced by plain Poisson."""
-    from napari_dslrxr.core.stages.impulse.colour import _weight_model
-    from napari_dslrxr.core.stages.impulse.noise_model import _NoiseModel
-
-    rng = np.random.default_rng(3)
-    surround = 512.0 + np.abs(rng.normal(0.0, 3.0, (200, 3))).max(axis=1)  # V = max of 3 channels
-    screen = 512.0 + rng.poisson(2000.0, 2000)
-    v_black = np.concatenate([surround, screen]).astype(np.float32).reshape(44, 50)
-    offset_line = _NoiseModel(a=1.17, b=-1.17 * 512 + 10.5, pulse_rate=1e-3, pulse_density=1e-4,
-                              polarity=1, var_floor=10.5)
-    assert _weight_model(offset_line, v_black) is offset_line
-    v_mesh = rng.uniform(95.0, 1524.0, (64, 64)).astype(np.float32)
-    mesh_line = _NoiseModel(a=4.3, b=-1357.6, pulse_rate=1e-3, pulse_density=1e-4, polarity=1, var_floor=32.9)
-    assert _weight_model(mesh_line, v_mesh) is None
-    positive = _NoiseModel(a=1.0, b=20.0, pulse_rate=1e-3, pulse_density=1e-4, polarity=1, var_floor=9.0)
-    assert _weight_model(positive, v_mesh) is positive
-    assert _weight_model(None, v_mesh) is None

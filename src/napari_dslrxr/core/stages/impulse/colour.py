@@ -51,7 +51,8 @@ def _weight_model(model_v: _NoiseModel | None, v: np.ndarray) -> _NoiseModel | N
 
     The weights use only the shape of the count variance. A line ``a c + b`` with ``b < 0``
     reaches zero at ``-b/a``, the camera's offset less a little; where a frame's V lies well
-    below that (its 1st percentile more than 3 read-noise sigmas lower), the line was set by
+    below that (its 1st percentile lower by more than 3 sigmas of the model's dark-end
+residual, about the read noise), the line was set by
     something other than the offset: V's fit on a frame filled with a mesh (levels of one
     narrow range, texture in the residual) gave a zero at 316 counts on a frame whose mesh
     nodes hold 95, which made the nodes' variance the floor and their H weight too high

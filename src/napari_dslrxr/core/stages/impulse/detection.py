@@ -688,9 +688,7 @@ def _noisy_annulus(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model:
     pixels are faint, as faint texture is (a pattern a few sigmas deep, or aliased onto
     a CFA plane)."""
     out = np.zeros(pixels.size, bool)
-    dr, dc = _window_offsets(2 * _TEXTURE_OUTER_PX + 1)
-    on = np.maximum(np.abs(dr), np.abs(dc)) >= _TEXTURE_INNER_PX
-    dr, dc = dr[on], dc[on]
+    dr, dc = _ANNULUS_DR, _ANNULUS_DC
     flat_x = x.ravel()
     for start in range(0, pixels.size, _CHUNK_PX):
         part = pixels[start:start + _CHUNK_PX]
@@ -723,9 +721,7 @@ def _in_texture(residual: _FullMap, pixels: np.ndarray, x: np.ndarray, model: "_
     out = np.zeros(pixels.size, bool)
     if pixels.size == 0:
         return out
-    dr, dc = _window_offsets(2 * _TEXTURE_OUTER_PX + 1)
-    on = np.maximum(np.abs(dr), np.abs(dc)) >= _TEXTURE_INNER_PX
-    dr, dc = dr[on], dc[on]
+    dr, dc = _ANNULUS_DR, _ANNULUS_DC
     flat_x = x.ravel()
 
     for start in range(0, pixels.size, chunk):
@@ -1313,18 +1309,18 @@ def _in_sorted(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
     return sorted_set[at] == values
 
 
-def _annulus_sides() -> list[np.ndarray]:
-    """Masks over the texture guard's annulus offsets (order of ``_window_offsets``): its
-    upper, lower, left and right bands."""
+def _annulus() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The texture guard's annulus (_TEXTURE_INNER_PX to _TEXTURE_OUTER_PX, Chebyshev):
+    its positions in the (2 _TEXTURE_OUTER_PX + 1)^2 window (row-major, the order of
+    ``_window_offsets``) and their row and column offsets."""
     dr, dc = _window_offsets(2 * _TEXTURE_OUTER_PX + 1)
-    on = np.maximum(np.abs(dr), np.abs(dc)) >= _TEXTURE_INNER_PX
-    dr, dc = dr[on], dc[on]
-    return [dr <= -_TEXTURE_INNER_PX, dr >= _TEXTURE_INNER_PX, dc <= -_TEXTURE_INNER_PX, dc >= _TEXTURE_INNER_PX]
+    on = np.flatnonzero(np.maximum(np.abs(dr), np.abs(dc)) >= _TEXTURE_INNER_PX)
+    return on, dr[on], dc[on]
 
 
-_ANNULUS_SIDES = _annulus_sides()
-#: The annulus's positions in its (2 _TEXTURE_OUTER_PX + 1)^2 window, row-major.
-_ANNULUS_ON = np.flatnonzero(np.maximum(*map(np.abs, _window_offsets(2 * _TEXTURE_OUTER_PX + 1)))
-                             >= _TEXTURE_INNER_PX)
+_ANNULUS_ON, _ANNULUS_DR, _ANNULUS_DC = _annulus()
+#: Masks over the annulus's offsets: its upper, lower, left and right bands.
+_ANNULUS_SIDES = [_ANNULUS_DR <= -_TEXTURE_INNER_PX, _ANNULUS_DR >= _TEXTURE_INNER_PX,
+                  _ANNULUS_DC <= -_TEXTURE_INNER_PX, _ANNULUS_DC >= _TEXTURE_INNER_PX]
 _FOOTPRINTS = _footprint_kernels()
 _REPEAT_SHIFTS = _repeat_shifts()
