@@ -101,4 +101,3 @@ def test_exact_test_skipping_the_spread_where_it_cannot_matter_gives_the_same_se
     got = _exact_test(x, candidates, model, params, False, weight, float(x.max()) - float(x.min()))
     np.testing.assert_array_equal(got, ref)
     assert 100 < ref.size < x.size // 10
-
