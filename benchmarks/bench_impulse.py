@@ -149,10 +149,14 @@ def main() -> None:
         for name, image in frames.items():
             src, out = Path(tmp) / f"{name}.tif", Path(tmp) / f"{name}_clean.tif"
             tifffile.imwrite(src, image, photometric="rgb")
-            runs = [run_command(["denoise", str(src), "-o", str(out)]) for _ in range(2)]
+            # Best of three, and the median: the system time of one command varies by a
+            # factor of 3 from run to run with the kernel's page supply (docs/impulse.md).
+            runs = [run_command(["denoise", str(src), "-o", str(out)]) for _ in range(3)]
             wall = min(r[0] for r in runs)
             cpu = min(r[1] for r in runs)
             rss = max(r[2] for r in runs)
+            wall_median = float(np.median([r[0] for r in runs]))
+            cpu_median_runs = float(np.median([r[1] for r in runs]))
 
             def median_three_channels(image=image) -> None:
                 for channel in range(3):
@@ -163,7 +167,9 @@ def main() -> None:
             results[name] = {
                 "dslrxr_denoise_wall_s": round(wall, 2), "scipy_median3_three_channels_wall_s": round(t_median, 2),
                 "wall_ratio": round(wall / t_median, 3),
+                "dslrxr_denoise_wall_median_s": round(wall_median, 2),
                 "dslrxr_denoise_cpu_s": round(cpu, 2), "scipy_median3_cpu_s": round(cpu_median, 2),
+                "dslrxr_denoise_cpu_median_s": round(cpu_median_runs, 2),
                 "cpu_ratio": round(cpu / cpu_median, 3),
                 "peak_rss_mb": round(rss, 1),
                 "pass": bool(min(wall / t_median, cpu / cpu_median) <= 1 / 3 and rss <= MEMORY_LIMIT_MB),
@@ -177,7 +183,8 @@ def main() -> None:
         **quality,
         "load_average_1min": round(os.getloadavg()[0], 2),
         "note": "whole dslrxr denoise process (start, read, denoise, write TIFF and sidecar) against "
-                "scipy's 3x3 median of the three channels in this process; best of 2 each. Wall times "
+                "scipy's 3x3 median of the three channels in this process; best of 3 runs of the command (and their "
+                "median: *_median_s) and of 2 of the median filter. Wall times "
                 "are inflated by other jobs on the 2 shared cores; CPU times much less so. A frame "
                 "passes when the better of the two ratios is at most 1/3 and the peak RSS at most 1 GB.",
         "pass": all(r["pass"] for r in results.values()),
