@@ -93,16 +93,15 @@ def keep_freed_arrays_mapped() -> bool:
     in the same sizes, so freed memory is kept for reuse. Not for ``dslrxr view`` (a
     long-lived process). Returns whether the allocator took the setting (False off glibc).
     """
-    import ctypes
-    import platform
+    try:  # glibc only (musl and macOS have no such setting; confstr raises there)
+        if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
+            return False
+        import ctypes
 
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    try:
         libc = ctypes.CDLL("libc.so.6")
         return bool(libc.mallopt(_M_MMAP_THRESHOLD, _HEAP_KEPT_BYTES)
                     and libc.mallopt(_M_TRIM_THRESHOLD, _HEAP_KEPT_BYTES))
-    except (OSError, AttributeError):
+    except (OSError, ValueError, AttributeError):
         return False
 
 
@@ -116,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         # contract; DSLRXR_DEBUG=1 shows them.
         if not os.environ.get("DSLRXR_DEBUG"):
             warnings.simplefilter("ignore")
-        return _run(argv)
+        return _run(args)
 
 
 #: Words a user may write after an on/off flag ("--dicom true"); click would take them as the
@@ -154,11 +153,11 @@ def check_flag_values(command, argv: list[str]) -> None:
                                      f"write {spellings}")
 
 
-def _run(argv: list[str] | None) -> int:
+def _run(args: list[str]) -> int:
     command = typer.main.get_command(app)
     try:
-        check_flag_values(command, list(sys.argv[1:] if argv is None else argv))
-        result = command.main(args=argv, prog_name="dslrxr", standalone_mode=False)
+        check_flag_values(command, args)
+        result = command.main(args=args, prog_name="dslrxr", standalone_mode=False)
         if result == EXIT_INTERRUPTED:  # typer turns Ctrl-C into this exit code, silently
             error_line("interrupted")
     except typer.Exit as exc:
