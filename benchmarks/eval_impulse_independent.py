@@ -259,6 +259,7 @@ def run_texture(seeds, methods):
         light = gen.transmission_light(p, rng, gen.TINTS["tinted"])
         rgb = np.clip(np.rint(gen.camera(light, rng)), 0, 65535).astype(np.uint16)
         grey = np.clip(np.rint(gen.camera(light[..., 1:2], rng)[..., 0]), 0, 65535).astype(np.uint16)
+        first = len(rows)
         for name in methods:
             if name.startswith("median"):
                 continue
@@ -266,7 +267,7 @@ def run_texture(seeds, methods):
                 _, mask = METHODS[name](img)
                 rows.append({"method": name, "path": path, "scene": f"CR {name_file}", "seed": seeds[0],
                              "flagged_pct": 100 * float(mask.mean())})
-        print(name_file, {(r["method"], r["path"]): round(r["flagged_pct"], 3) for r in rows[-6:]}, flush=True)
+        print(name_file, {(r["method"], r["path"]): round(r["flagged_pct"], 3) for r in rows[first:]}, flush=True)
     return rows
 
 
