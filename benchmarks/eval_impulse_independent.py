@@ -26,8 +26,9 @@ of the strong rims' ramp-blind guard, and ``--seeds heldout4`` (4001, 4002) once
 version (limited to gentle ramps after heldout3 had been seen); ``--seeds heldout5`` (5001, 5002)
 once, at the end of the CFA planes' tighter noise-fit check (a mesh of heldout3 had been seen);
 ``--seeds heldout6`` (6001, 6002) once, for the broad-patch guard of the growth (it found two
-20-sigma tracks and a flat pulse dropped whole, fixed: seen now), and ``--seeds heldout7``
-(7001, 7002) once for the guard's final version.
+20-sigma tracks and a flat pulse dropped whole, fixed: seen now), ``--seeds heldout7``
+(7001, 7002) once for the guard's final version, and ``--seeds heldout8`` (8001, 8002) once in
+session 32, on the stage as it stood (no change to it that session).
 
 Run: ``.venv/bin/python benchmarks/eval_impulse_independent.py --set pulses --seeds dev``
 """
@@ -47,7 +48,8 @@ import impulse_pulses as gen  # noqa: E402
 from _harness import RESULTS, load_test_module  # noqa: E402
 
 SEEDS = {"dev": (1, 2), "heldout": (1001, 1002), "heldout2": (2001, 2002), "heldout3": (3001, 3002),
-         "heldout4": (4001, 4002), "heldout5": (5001, 5002), "heldout6": (6001, 6002), "heldout7": (7001, 7002)}
+         "heldout4": (4001, 4002), "heldout5": (5001, 5002), "heldout6": (6001, 6002), "heldout7": (7001, 7002),
+         "heldout8": (8001, 8002)}
 
 
 # --------------------------------------------------------------------------- methods
