@@ -106,6 +106,23 @@ METHODS = {"ours": _ours, "previous": _previous, "median3": _median(3), "median5
 
 # --------------------------------------------------------------------------- pulses
 
+#: The frame kinds of the pulse sets, in the order their random streams are numbered.
+KINDS = ("tinted", "grey_rgb", "grey")
+#: Issue 13's targets for the pulse sets.
+TARGET_RECALL, TARGET_PRECISION, TARGET_PE_CLEAN_PCT = 0.90, 0.95, 0.1
+
+
+def pulse_frame(seed: int, kind: str, polarity: str = "bright") -> gen.PulsedFrame:
+    """The pulse sets' frame of ``kind`` for ``seed`` (every script scoring them uses these)."""
+    rng = np.random.default_rng([seed, KINDS.index(kind), polarity == "dark"])
+    return gen.pulsed_frame(kind, rng, polarity=polarity)
+
+
+def pe_clean_pct(dirty: np.ndarray, out: np.ndarray, far: np.ndarray) -> float:
+    """PE on clean pixels: the changes on ``far`` pixels (2 px or more from any pulse) over the
+    frame there, %."""
+    return float(100 * np.linalg.norm((out - dirty)[far]) / np.linalg.norm(dirty[far]))
+
 
 def score_pulses(frame: gen.PulsedFrame, out: np.ndarray, mask: np.ndarray, detector: bool) -> dict:
     from scipy import ndimage as ndi
@@ -133,7 +150,7 @@ def score_pulses(frame: gen.PulsedFrame, out: np.ndarray, mask: np.ndarray, dete
             }
     res["precision"] = float(np.count_nonzero(mask & near) / max(np.count_nonzero(mask), 1)) if detector else None
     res["flagged_px"] = int(np.count_nonzero(mask))
-    res["pe_clean_pct"] = float(100 * np.linalg.norm((out - dirty)[far]) / np.linalg.norm(dirty[far]))
+    res["pe_clean_pct"] = pe_clean_pct(dirty, out, far)
     strong = frame.strong
     res["recall_all"] = float(np.count_nonzero(mask & strong) / max(np.count_nonzero(strong), 1)) if detector else None
     grp = frame.labels > 0
@@ -144,9 +161,8 @@ def score_pulses(frame: gen.PulsedFrame, out: np.ndarray, mask: np.ndarray, dete
 def run_pulses(seeds, methods, polarity):
     rows = []
     for seed in seeds:
-        for kind in ("tinted", "grey_rgb", "grey"):
-            rng = np.random.default_rng([seed, ("tinted", "grey_rgb", "grey").index(kind), polarity == "dark"])
-            frame = gen.pulsed_frame(kind, rng, polarity=polarity)
+        for kind in KINDS:
+            frame = pulse_frame(seed, kind, polarity)
             for name in methods:
                 if name == "astroscrappy" and polarity == "dark":
                     continue

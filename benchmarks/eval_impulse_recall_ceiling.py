@@ -33,11 +33,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import impulse_pulses as gen  # noqa: E402
-from eval_impulse_independent import SEEDS, _ours  # noqa: E402
-
-KINDS = ("tinted", "grey_rgb", "grey")
-PRECISION = 0.95
-PE_TARGET_PCT = 0.1
+from eval_impulse_independent import KINDS, SEEDS, _ours, pe_clean_pct, pulse_frame  # noqa: E402
+from eval_impulse_independent import TARGET_PE_CLEAN_PCT as PE_TARGET_PCT  # noqa: E402
+from eval_impulse_independent import TARGET_PRECISION as PRECISION  # noqa: E402
 
 
 def _sparse_ring() -> np.ndarray:
@@ -48,18 +46,17 @@ def _sparse_ring() -> np.ndarray:
     return fp
 
 
+THRESHOLDS = np.arange(2.5, 12.001, 0.05)  # sigma
+
+
+def _precise(flag: np.ndarray, near: np.ndarray) -> bool:
+    """At least the target precision: flagged pixels within 1 px of a pulse (``near``)."""
+    return np.count_nonzero(flag & near) >= PRECISION * max(np.count_nonzero(flag), 1)
+
+
 def lowest_threshold(z: np.ndarray, near: np.ndarray) -> float:
     """Lowest ``t`` (0.05 steps, 2.5-12 sigma) at which ``z >= t`` has the target precision."""
-    for t in np.arange(2.5, 12.001, 0.05):
-        flag = z >= t
-        if np.count_nonzero(flag & near) >= PRECISION * max(np.count_nonzero(flag), 1):
-            return float(t)
-    return float("inf")
-
-
-def pe_clean_pct(dirty: np.ndarray, out: np.ndarray, far: np.ndarray) -> float:
-    """The evaluation's PE on clean pixels: changes on ``far`` pixels over the frame there, %."""
-    return float(100 * np.linalg.norm((out - dirty)[far]) / np.linalg.norm(dirty[far]))
+    return next((float(t) for t in THRESHOLDS if _precise(z >= t, near)), float("inf"))
 
 
 def lowest_threshold_at_pe(z: np.ndarray, near: np.ndarray, dirty: np.ndarray, expected: np.ndarray,
@@ -67,12 +64,10 @@ def lowest_threshold_at_pe(z: np.ndarray, near: np.ndarray, dirty: np.ndarray, e
     """Lowest ``t`` (0.05 steps, 2.5-12 sigma) at which flagging the channels with ``z >= t``
     (``z``, ``dirty``, ``expected``: (H, W, C)) and replacing them by ``expected`` has the
     target precision (pixels flagged in any channel) and at most ``pe_pct`` PE on ``far``."""
-    for t in np.arange(2.5, 12.001, 0.05):
+    for t in THRESHOLDS:
         flag_c = z >= t
-        flag = flag_c.any(axis=2)
-        if np.count_nonzero(flag & near) < PRECISION * max(np.count_nonzero(flag), 1):
-            continue
-        if pe_clean_pct(dirty, np.where(flag_c, expected, dirty), far) <= pe_pct:
+        if _precise(flag_c.any(axis=2), near) and \
+                pe_clean_pct(dirty, np.where(flag_c, expected, dirty), far) <= pe_pct:
             return float(t)
     return float("inf")
 
@@ -87,8 +82,7 @@ def main() -> None:
     # (hits, pixels, 4-sigma hits, 4-sigma pixels)
     for seed in SEEDS[args.seeds]:
         for kind in KINDS:
-            rng = np.random.default_rng([seed, KINDS.index(kind), False])  # the evaluation's frames
-            frame = gen.pulsed_frame(kind, rng)
+            frame = pulse_frame(seed, kind)  # the evaluation's frames
             dirty = frame.dirty.astype(np.float64)
             if dirty.ndim == 2:
                 dirty = dirty[..., None]
@@ -101,12 +95,12 @@ def main() -> None:
             masks = {}
             line = []
             for name, expected in (("oracle", frame.light), ("median background", background)):
-                z = ((dirty - expected) / sigma).max(axis=2)
+                z_c = (dirty - expected) / sigma
+                z = z_c.max(axis=2)
                 t = lowest_threshold(z, near)
                 masks[name] = z >= t
                 line.append(f"{name} t {t:.2f}")
                 if name == "oracle":
-                    z_c = (dirty - expected) / sigma
                     t_pe = lowest_threshold_at_pe(z_c, near, dirty, expected, far)
                     masks["oracle at the PE target"] = z >= t_pe
                     line.append(f"oracle at the PE target t {t_pe:.2f}")

@@ -32,9 +32,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import impulse_pulses as gen  # noqa: E402
 from _harness import ROOT, record  # noqa: E402
-from eval_impulse_independent import SEEDS, score_pulses  # noqa: E402
+from eval_impulse_independent import (KINDS, SEEDS, TARGET_PE_CLEAN_PCT, TARGET_PRECISION,  # noqa: E402
+                                      TARGET_RECALL, pulse_frame, score_pulses)
 
 GRID = {
     "footprint_sigmas": [4.0, 4.5, 5.0, 5.5],
@@ -46,16 +46,7 @@ GRID = {
 #: The shipped settings (the sweep must reproduce eval_impulse_independent's "ours" row).
 DEFAULT = {"footprint_sigmas": 5.0, "min_contrast": 0.07, "neighbour_prior": 0.5,
            "strong_rim_prior": 0.75, "posterior_threshold": 0.5}
-TARGET = {"recall": 0.90, "precision": 0.95, "pe_clean_pct": 0.1}
-
-
-def frames_for(seeds) -> list:
-    out = []
-    for seed in seeds:
-        for kind in ("tinted", "grey_rgb", "grey"):
-            rng = np.random.default_rng([seed, ("tinted", "grey_rgb", "grey").index(kind), False])
-            out.append(gen.pulsed_frame(kind, rng))
-    return out
+TARGET = {"recall": TARGET_RECALL, "precision": TARGET_PRECISION, "pe_clean_pct": TARGET_PE_CLEAN_PCT}
 
 
 def score(frames, setting: dict) -> dict:
@@ -125,7 +116,7 @@ def main() -> None:
     parser.add_argument("--seeds", choices=sorted(SEEDS), default="dev")
     parser.add_argument("--figure", action="store_true", help="also write docs/impulse_tradeoff.png")
     args = parser.parse_args()
-    frames = frames_for(SEEDS[args.seeds])
+    frames = [pulse_frame(seed, kind) for seed in SEEDS[args.seeds] for kind in KINDS]
     rows = []
     t0 = time.perf_counter()
     for values in itertools.product(*GRID.values()):
