@@ -312,7 +312,8 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         steps.advance()
         pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch,
                                fast_residual, near_scratch, check=steps.check, strong_rims=faint_pulses)
-        if channels is not None and photon_counting and faint_pulses and residual_weight is None:
+        if photon_counting and faint_pulses and residual_weight is None and (
+                channels is not None or texture_sides == "two_signed"):  # V, grey
             pulses = _without_broad_patches(x, pulses, model, scratch, channels)
         if pulses.size == 0:
             break
@@ -1041,6 +1042,114 @@ _TINT_CHI2 = 13.8
 _TINT_TOLERANCE = 0.05
 
 
+#: A grown patch is also broad structure when its excess, with the 2 px around it, is a smooth
+#: Gaussian hill (a small dense object, a calcification or a marker, blurred by the screen) at
+#: least this wide, px (sigma): the growth climbs such a hill down to the noise, so its ring no
+#: longer stands up, and the replacement would flatten it. The independent pulses' Gaussians
+#: have sigma 0.5-1.1 px and end within their footprints; flat pulses and clusters end abruptly
+#: and fit no Gaussian that also fits their ring.
+_HILL_MIN_SIGMA_PX = 1.4
+#: Gaussian widths tried for the hill (sigma, px); a best fit at the widest is no hill (a flat top).
+_HILL_SIGMAS_PX = np.arange(0.5, 4.01, 0.1)
+#: The hill fits when its chi-square is within this many standard deviations of its degrees of
+#: freedom (the pixels less 7: the plane's 3, height, width and centre) ...
+_HILL_CHI2_SDS = 3.0
+#: ... and beats a pulse's shape, one flat level over the patch and none in its ring, by at
+#: least this much chi-square: at a few noise sigmas a small flat pulse fits a wide Gaussian as
+#: well (dev pulse frames, grey: 4-sigma flat pulses' recall 0.51 -> 0.44 without this test).
+_HILL_MIN_CHI2_GAIN = 25.0
+
+
+#: Relative mismatch a hill's profile is allowed besides the noise, of its excess.
+_HILL_TOLERANCE = 0.05
+#: Only a patch whose border excess is at most this share of its peak excess is fitted as a hill.
+_HILL_MAX_BORDER_SHARE = 0.75
+#: The hill's background plane is also fitted on the outline of the patch's bounding box grown
+#: by this, px (besides the 2 px around the patch).
+_HILL_BACKGROUND_PX = 5
+
+
+def _box_outline(shape, labels: np.ndarray, rows: np.ndarray, cols: np.ndarray, margin_px: int,
+                 count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(labels, flat indices) of the outline of each label's bounding box (its pixels
+    ``labels``, ``rows``, ``cols``) grown by ``margin_px``, clipped to the image."""
+    h, w = shape
+    r0 = np.full(count, h, np.int64)
+    c0 = np.full(count, w, np.int64)
+    r1 = np.full(count, -1, np.int64)
+    c1 = np.full(count, -1, np.int64)
+    np.minimum.at(r0, labels, rows)
+    np.minimum.at(c0, labels, cols)
+    np.maximum.at(r1, labels, rows)
+    np.maximum.at(c1, labels, cols)
+    used = np.flatnonzero(r1 >= 0)
+    r0, c0 = np.maximum(r0[used] - margin_px, 0), np.maximum(c0[used] - margin_px, 0)
+    r1, c1 = np.minimum(r1[used] + margin_px, h - 1), np.minimum(c1[used] + margin_px, w - 1)
+    lab_parts, pix_parts = [], []
+    for fixed, lo, hi, along_rows in ((r0, c0, c1, False), (r1, c0, c1, False), (c0, r0 + 1, r1 - 1, True),
+                                      (c1, r0 + 1, r1 - 1, True)):
+        n = np.maximum(hi - lo + 1, 0)
+        moving = np.repeat(lo, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+        fixed_rep = np.repeat(fixed, n)
+        lab_parts.append(np.repeat(used, n))
+        pix_parts.append(moving * w + fixed_rep if along_rows else fixed_rep * w + moving)
+    return np.concatenate(lab_parts), np.concatenate(pix_parts)
+
+
+def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background: np.ndarray,
+                    model: _NoiseModel, patch: tuple[np.ndarray, np.ndarray],
+                    around: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Per label (``sign``'s length), whether the patch, with the pixels ``around`` it, is a
+    Gaussian hill of sigma :data:`_HILL_MIN_SIGMA_PX` or wider on a sloping background.
+
+    ``patch``, ``around``: (labels, flat indices) of their pixels in ``values`` (the channel,
+    flat, ``width`` px per row); ``sign``: +1 for a bright patch, -1 for a dark one;
+    ``background``: a level near each patch, for the model's tolerance. The model,
+    fitted by weighted least squares (each pixel by its noise), is a plane plus ``sign`` times a
+    Gaussian at the patch's centroid, on a grid of widths (:data:`_HILL_SIGMAS_PX`); the pulse's
+    alternative is the plane plus one level over the patch.
+    """
+    count = sign.size
+    n_patch = patch[0].size
+    lab = np.concatenate([patch[0], around[0]])
+    pix = np.concatenate([patch[1], around[1]])
+    rows, cols = np.divmod(pix, width)
+    y = values[pix].astype(np.float64)
+    # each pixel's noise, and a tolerance for a real object's profile (not quite Gaussian,
+    # centre and width on a grid) in proportion to its excess
+    excess = y - np.nan_to_num(background)[lab]
+    wt = 1.0 / (np.maximum(model.variance(np.maximum(y, 0.0)), 1e-12) + (_HILL_TOLERANCE * excess) ** 2)
+    n_lab = np.maximum(np.bincount(patch[0], minlength=count), 1)
+    centre_r = np.bincount(patch[0], rows[:n_patch], count) / n_lab
+    centre_c = np.bincount(patch[0], cols[:n_patch], count) / n_lab
+    dr, dc = rows - centre_r[lab], cols - centre_c[lab]
+    d2 = dr * dr + dc * dc
+
+    def chi2_of(shape_col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # least squares of y on [1, dr, dc, shape] per label: (chi-square, shape's coefficient)
+        columns = (np.ones_like(y), dr, dc, shape_col)
+        normal = np.empty((count, 4, 4))
+        rhs = np.empty((count, 4))
+        for i in range(4):
+            rhs[:, i] = np.bincount(lab, wt * columns[i] * y, count)
+            for j in range(i, 4):
+                normal[:, i, j] = normal[:, j, i] = np.bincount(lab, wt * columns[i] * columns[j], count)
+        normal[:, range(4), range(4)] += 1e-9
+        beta = np.linalg.solve(normal, rhs[..., None])[..., 0]
+        return np.bincount(lab, wt * y * y, count) - np.einsum("ki,ki->k", beta, rhs), beta[:, 3]
+
+    best_chi2, best_sigma, best_height = np.full(count, np.inf), np.zeros(count), np.zeros(count)
+    for sigma in _HILL_SIGMAS_PX:
+        chi2, height = chi2_of(np.exp(-d2 / (2.0 * sigma * sigma)))
+        better = chi2 < best_chi2
+        best_chi2[better], best_sigma[better], best_height[better] = chi2[better], sigma, height[better]
+    flat_chi2, _ = chi2_of((np.arange(lab.size) < n_patch).astype(np.float64))
+    dof = np.maximum(np.bincount(lab, minlength=count) - 7, 1).astype(np.float64)
+    return ((best_sigma >= _HILL_MIN_SIGMA_PX) & (best_sigma < _HILL_SIGMAS_PX[-1]) & (sign * best_height > 0)
+            & (best_chi2 <= dof + _HILL_CHI2_SDS * np.sqrt(2.0 * dof))
+            & (best_chi2 + _HILL_MIN_CHI2_GAIN <= flat_chi2))
+
+
 def _scintillator_tint(channels: np.ndarray, block_px: int = 8) -> np.ndarray:
     """The colour (unit RGB vector) in which the frame's light varies: the first principal axis
     of the differences between neighbouring ``block_px`` blocks' mean colours (the largest 1 %
@@ -1129,11 +1238,13 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
     size = h * w
     values = x.ravel()
 
-    def around(reach_px: int) -> tuple[np.ndarray, np.ndarray]:
-        # (label, pixel) pairs within reach of each compact patch, other pulses left out
+    def around(reach_px: int, of: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        # (label, pixel) pairs within reach of each compact patch (``of``: only the patch
+        # pixels selected), other pulses left out
         ddr, ddc = _window_offsets(2 * reach_px + 1)
-        near = _flat_indices(rows, cols, ddr, ddc, (h, w))
-        pairs = _sorted_unique(sub_label[:, None].astype(np.int64) * size + near)
+        pick = slice(None) if of is None else of
+        near = _flat_indices(rows[pick], cols[pick], ddr, ddc, (h, w))
+        pairs = _sorted_unique(sub_label[pick][:, None].astype(np.int64) * size + near)
         pix = pairs % size
         outside = ~_in_sorted(pix, pulse_set)
         return pairs[outside] // size, pix[outside]
@@ -1173,6 +1284,29 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
         sigma = np.sqrt(np.maximum(model.variance(np.nan_to_num(background)), 0.0))
         broad = compact & (ring_excess >= _BROAD_RING_SIGMAS * sigma) & (ring_excess >= _BROAD_RING_SHARE * border_excess)
     broad &= np.isfinite(ring_excess) & np.isfinite(border_excess) & (border_excess > 0)
+    # a hill the growth has climbed down to the noise: its ring no longer stands up, but the
+    # patch with the 2 px around it is a wide Gaussian on the background's plane (fitted with
+    # the outline 5 px out too). Only patches whose border has come down from their peak (a
+    # flat pulse's has not) are fitted.
+    excess_px = sign[sub_label] * (values[sub].astype(np.float64) - background[sub_label])
+    peak_excess = np.full(count, -np.inf)
+    np.maximum.at(peak_excess, sub_label, np.nan_to_num(excess_px, nan=-np.inf))
+    with np.errstate(invalid="ignore"):
+        # (on V the ring's patches go to the colour test anyway)
+        hill = (compact & (~broad if channels is not None else True) & (border_excess > 0)
+                & (border_excess <= _HILL_MAX_BORDER_SHARE * peak_excess))
+    if hill.any():
+        fit_px = hill[sub_label]
+        near_lab, near_pix = around(2, fit_px)
+        out_lab, out_pix = _box_outline((h, w), sub_label[fit_px], rows[fit_px], cols[fit_px],
+                                        _HILL_BACKGROUND_PX, count)
+        out_keep = ~_in_sorted(out_pix, pulse_set)
+        hill &= _gaussian_hills(values, w, np.nan_to_num(sign), background, model, (sub_label[fit_px], sub[fit_px]),
+                                (np.concatenate([near_lab, out_lab[out_keep]]),
+                                 np.concatenate([near_pix, out_pix[out_keep]])))
+    if channels is None:  # one channel: the shape is all the evidence, and a ring alone drops pulses
+        return pulses[~hill[label]] if hill.any() else pulses
+    broad |= hill
     if not broad.any():
         return pulses
     # the scintillator's colour: excess per channel against the background's colour
