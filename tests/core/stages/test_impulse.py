@@ -738,8 +738,8 @@ def test_small_dense_objects_blurred_by_the_screen_are_not_pulses(rng, tint):
     """A calcification or a marker bead is a Gaussian hill as wide as the screen's blur; the
     growth climbs it down to the noise, so its ring no longer stands up, and replacing it
     would erase the object. Of the pixels of hills of sigma 1.6-3 px and 10-60 noise sigmas on a
-    sloping background, 9 % (grey) and 13 % (tinted) are flagged, 68 % and 56 % before the hill
-    test, while flat pulses (2x2 to 4x4), single pixels and narrow Gaussian hits (sigma 0.7 px)
+    sloping background, 1.0 % (grey) and 0.2 % (tinted) are flagged, 68 % and 56 % before the
+    hill test, while flat pulses (2x2 to 4x4), single pixels and narrow Gaussian hits (sigma 0.7 px)
     of 8-20 sigmas beside them are all found, as before."""
     h, w = 260, 300
     yy, xx = np.mgrid[:h, :w].astype(float)
@@ -769,5 +769,5 @@ def test_small_dense_objects_blurred_by_the_screen_are_not_pulses(rng, tint):
     image = image[..., 0] if image.shape[-1] == 1 else image
     mask = remove_impulses(image).any_mask()
     hill_px, hit_px = hills > 2 * noise, hits > 3 * noise
-    assert np.count_nonzero(mask & hill_px) < 0.2 * np.count_nonzero(hill_px)
+    assert np.count_nonzero(mask & hill_px) < 0.05 * np.count_nonzero(hill_px)
     assert np.count_nonzero(mask & hit_px) >= 0.9 * np.count_nonzero(hit_px)

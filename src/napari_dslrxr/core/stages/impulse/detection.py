@@ -1106,7 +1106,7 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
     flat, ``width`` px per row); ``sign``: +1 for a bright patch, -1 for a dark one;
     ``background``: a level near each patch, for the model's tolerance. The model,
     fitted by weighted least squares (each pixel by its noise), is a plane plus ``sign`` times a
-    Gaussian at the patch's centroid, on a grid of widths (:data:`_HILL_SIGMAS_PX`); the pulse's
+    Gaussian at the patch's excess-weighted centroid, on a grid of widths (:data:`_HILL_SIGMAS_PX`); the pulse's
     alternative is the plane plus one level over the patch.
     """
     count = sign.size
@@ -1119,9 +1119,11 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
     # centre and width on a grid) in proportion to its excess
     excess = y - np.nan_to_num(background)[lab]
     wt = 1.0 / (np.maximum(model.variance(np.maximum(y, 0.0)), 1e-12) + (_HILL_TOLERANCE * excess) ** 2)
-    n_lab = np.maximum(np.bincount(patch[0], minlength=count), 1)
-    centre_r = np.bincount(patch[0], rows[:n_patch], count) / n_lab
-    centre_c = np.bincount(patch[0], cols[:n_patch], count) / n_lab
+    # centre: the patch pixels' positive excess as weights (the hill's top)
+    top = np.maximum(sign[patch[0]] * excess[:n_patch], 0.0)
+    total = np.maximum(np.bincount(patch[0], top, count), 1e-12)
+    centre_r = np.bincount(patch[0], top * rows[:n_patch], count) / total
+    centre_c = np.bincount(patch[0], top * cols[:n_patch], count) / total
     dr, dc = rows - centre_r[lab], cols - centre_c[lab]
     d2 = dr * dr + dc * dc
 
