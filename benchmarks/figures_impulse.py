@@ -3,9 +3,10 @@
 Writes docs/impulse_lines.png (a line pattern in a radiograph, no pulses), impulse_niqa.png
 (a real NIQA frame), impulse_ccd.png (the ccdproc CCD frame with cosmic rays) and
 impulse_colour.png (a tinted colour frame of the independent pulse generator) and
-impulse_cfa.png (a mesh inside a radiograph on the CFA planes of a Bayer mosaic).
+impulse_cfa.png (a mesh inside a radiograph on the CFA planes of a Bayer mosaic) and
+impulse_hills.png (small dense objects blurred by the screen, no pulses).
 
-Run: ``.venv/bin/python benchmarks/figures_impulse.py [lines,niqa,ccd,colour,cfa]`` (default:
+Run: ``.venv/bin/python benchmarks/figures_impulse.py [lines,niqa,ccd,colour,cfa,hills]`` (default:
 all; the CCD figure's baseline needs astroscrappy, the ``bench`` extra).
 """
 
@@ -144,9 +145,33 @@ def _cfa_figure() -> None:
            f"CFA planes of a tinted Bayer mosaic, {desc}, no pulses")
 
 
+def _hills_figure() -> None:
+    """Beads blurred by a non-Gaussian screen PSF in a grey radiograph, no pulses; the stage
+    without the hill test (the version before session 33) as baseline."""
+    import eval_impulse_hills as hills
+
+    from napari_dslrxr.core.stages.impulse import detection, remove_impulses
+
+    frame, mask = hills.hill_frame(12, "beads", gen.TINTS["grey"])
+    ours = remove_impulses(frame)
+    saved = detection._HILL_MIN_SIGMA_PX
+    detection._HILL_MIN_SIGMA_PX = np.inf
+    try:
+        before = remove_impulses(frame)
+    finally:
+        detection._HILL_MIN_SIGMA_PX = saved
+    crop = (slice(0, 250), slice(0, 300))
+    _panel(DOCS / "impulse_hills.png",
+           [frame[crop], ours.image[crop], before.image[crop], ours.masks["grey"][crop], before.masks["grey"][crop]],
+           ["input: beads, no pulses", "ours: output", "without the hill test: output",
+            f"ours: mask ({ours.masks['grey'][mask].mean():.1%} of bead px)",
+            f"without: mask ({before.masks['grey'][mask].mean():.1%})"],
+           "Small dense objects (discs blurred by a Gaussian core + exponential tail) in a grey radiograph")
+
+
 def main() -> None:
     figures = {"lines": _lines_figure, "niqa": _niqa_figure, "ccd": _ccd_figure, "colour": _colour_figure,
-               "cfa": _cfa_figure}
+               "cfa": _cfa_figure, "hills": _hills_figure}
     wanted = sys.argv[1].split(",") if len(sys.argv) > 1 else list(figures)
     for name in wanted:
         figures[name]()
