@@ -28,7 +28,8 @@ once, at the end of the CFA planes' tighter noise-fit check (a mesh of heldout3 
 ``--seeds heldout6`` (6001, 6002) once, for the broad-patch guard of the growth (it found two
 20-sigma tracks and a flat pulse dropped whole, fixed: seen now), ``--seeds heldout7``
 (7001, 7002) once for the guard's final version, and ``--seeds heldout8`` (8001, 8002) once in
-session 32, on the stage as it stood (no change to it that session).
+session 32, on the stage as it stood (no change to it that session), and ``--seeds heldout9``
+(9001, 9002) once in session 33, at the end of the hill test.
 
 Run: ``.venv/bin/python benchmarks/eval_impulse_independent.py --set pulses --seeds dev``
 """
@@ -49,7 +50,7 @@ from _harness import RESULTS, load_test_module  # noqa: E402
 
 SEEDS = {"dev": (1, 2), "heldout": (1001, 1002), "heldout2": (2001, 2002), "heldout3": (3001, 3002),
          "heldout4": (4001, 4002), "heldout5": (5001, 5002), "heldout6": (6001, 6002), "heldout7": (7001, 7002),
-         "heldout8": (8001, 8002)}
+         "heldout8": (8001, 8002), "heldout9": (9001, 9002)}
 
 
 # --------------------------------------------------------------------------- methods
