@@ -1109,9 +1109,12 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
     Gaussian at the patch's excess-weighted centroid, on a grid of widths (:data:`_HILL_SIGMAS_PX`); the pulse's
     alternative is the plane plus one level over the patch.
     """
-    count = sign.size
-    n_patch = patch[0].size
-    lab = np.concatenate([patch[0], around[0]])
+    n_labels = sign.size
+    # on the labels present only (a frame's patches number in the ten thousands)
+    used, lab = np.unique(np.concatenate([patch[0], around[0]]), return_inverse=True)
+    count, n_patch = used.size, patch[0].size
+    sign, background = sign[used], background[used]
+    patch_lab = lab[:n_patch]
     pix = np.concatenate([patch[1], around[1]])
     rows, cols = np.divmod(pix, width)
     y = values[pix].astype(np.float64)
@@ -1120,25 +1123,36 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
     excess = y - np.nan_to_num(background)[lab]
     wt = 1.0 / (np.maximum(model.variance(np.maximum(y, 0.0)), 1e-12) + (_HILL_TOLERANCE * excess) ** 2)
     # centre: the patch pixels' positive excess as weights (the hill's top)
-    top = np.maximum(sign[patch[0]] * excess[:n_patch], 0.0)
-    total = np.maximum(np.bincount(patch[0], top, count), 1e-12)
-    centre_r = np.bincount(patch[0], top * rows[:n_patch], count) / total
-    centre_c = np.bincount(patch[0], top * cols[:n_patch], count) / total
+    top = np.maximum(sign[patch_lab] * excess[:n_patch], 0.0)
+    total = np.maximum(np.bincount(patch_lab, top, count), 1e-12)
+    centre_r = np.bincount(patch_lab, top * rows[:n_patch], count) / total
+    centre_c = np.bincount(patch_lab, top * cols[:n_patch], count) / total
     dr, dc = rows - centre_r[lab], cols - centre_c[lab]
     d2 = dr * dr + dc * dc
 
+    # the background's columns [1, dr, dc] do not depend on the shape: their sums once
+    base_columns = (np.ones_like(y), dr, dc)
+    base_normal = np.empty((count, 3, 3))
+    base_rhs = np.empty((count, 3))
+    for i in range(3):
+        base_rhs[:, i] = np.bincount(lab, wt * base_columns[i] * y, count)
+        for j in range(i, 3):
+            base_normal[:, i, j] = base_normal[:, j, i] = np.bincount(lab, wt * base_columns[i] * base_columns[j], count)
+    sum_wyy = np.bincount(lab, wt * y * y, count)
+
     def chi2_of(shape_col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # least squares of y on [1, dr, dc, shape] per label: (chi-square, shape's coefficient)
-        columns = (np.ones_like(y), dr, dc, shape_col)
         normal = np.empty((count, 4, 4))
         rhs = np.empty((count, 4))
-        for i in range(4):
-            rhs[:, i] = np.bincount(lab, wt * columns[i] * y, count)
-            for j in range(i, 4):
-                normal[:, i, j] = normal[:, j, i] = np.bincount(lab, wt * columns[i] * columns[j], count)
+        normal[:, :3, :3], rhs[:, :3] = base_normal, base_rhs
+        w_shape = wt * shape_col
+        rhs[:, 3] = np.bincount(lab, w_shape * y, count)
+        for i in range(3):
+            normal[:, i, 3] = normal[:, 3, i] = np.bincount(lab, w_shape * base_columns[i], count)
+        normal[:, 3, 3] = np.bincount(lab, w_shape * shape_col, count)
         normal[:, range(4), range(4)] += 1e-9
         beta = np.linalg.solve(normal, rhs[..., None])[..., 0]
-        return np.bincount(lab, wt * y * y, count) - np.einsum("ki,ki->k", beta, rhs), beta[:, 3]
+        return sum_wyy - np.einsum("ki,ki->k", beta, rhs), beta[:, 3]
 
     best_chi2, best_sigma, best_height = np.full(count, np.inf), np.zeros(count), np.zeros(count)
     for sigma in _HILL_SIGMAS_PX:
@@ -1147,9 +1161,11 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
         best_chi2[better], best_sigma[better], best_height[better] = chi2[better], sigma, height[better]
     flat_chi2, _ = chi2_of((np.arange(lab.size) < n_patch).astype(np.float64))
     dof = np.maximum(np.bincount(lab, minlength=count) - 7, 1).astype(np.float64)
-    return ((best_sigma >= _HILL_MIN_SIGMA_PX) & (best_sigma < _HILL_SIGMAS_PX[-1]) & (sign * best_height > 0)
-            & (best_chi2 <= dof + _HILL_CHI2_SDS * np.sqrt(2.0 * dof))
-            & (best_chi2 + _HILL_MIN_CHI2_GAIN <= flat_chi2))
+    hill = np.zeros(n_labels, bool)
+    hill[used] = ((best_sigma >= _HILL_MIN_SIGMA_PX) & (best_sigma < _HILL_SIGMAS_PX[-1]) & (sign * best_height > 0)
+                  & (best_chi2 <= dof + _HILL_CHI2_SDS * np.sqrt(2.0 * dof))
+                  & (best_chi2 + _HILL_MIN_CHI2_GAIN <= flat_chi2))
+    return hill
 
 
 def _scintillator_tint(channels: np.ndarray, block_px: int = 8) -> np.ndarray:
