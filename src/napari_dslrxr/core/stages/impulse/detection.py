@@ -1056,10 +1056,9 @@ _HILL_SIGMAS_PX = np.arange(0.5, 4.01, 0.1)
 _HILL_CHI2_SDS = 3.0
 #: ... and beats a pulse's shape, one flat level over the patch and none in its ring, by at
 #: least this much chi-square: at a few noise sigmas a small flat pulse fits a wide Gaussian as
-#: well (dev pulse frames, grey: 4-sigma flat pulses' recall 0.51 -> 0.44 without this test).
+#: well (dev pulse frames, grey, the test's first form: 4-sigma flat pulses' recall 0.51 -> 0.44
+#: without this condition).
 _HILL_MIN_CHI2_GAIN = 25.0
-
-
 #: Relative mismatch a hill's profile is allowed besides the noise, of its excess.
 _HILL_TOLERANCE = 0.05
 #: Only a patch whose border excess is at most this share of its peak excess is fitted as a hill.
@@ -1106,8 +1105,8 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
     flat, ``width`` px per row); ``sign``: +1 for a bright patch, -1 for a dark one;
     ``background``: a level near each patch, for the model's tolerance. The model,
     fitted by weighted least squares (each pixel by its noise), is a plane plus ``sign`` times a
-    Gaussian at the patch's excess-weighted centroid, on a grid of widths (:data:`_HILL_SIGMAS_PX`); the pulse's
-    alternative is the plane plus one level over the patch.
+    Gaussian at the patch's excess-weighted centroid, on a grid of widths
+    (:data:`_HILL_SIGMAS_PX`); the pulse's alternative is the plane plus one level over the patch.
     """
     n_labels = sign.size
     # on the labels present only (a frame's patches number in the ten thousands)
@@ -1137,7 +1136,8 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
     for i in range(3):
         base_rhs[:, i] = np.bincount(lab, wt * base_columns[i] * y, count)
         for j in range(i, 3):
-            base_normal[:, i, j] = base_normal[:, j, i] = np.bincount(lab, wt * base_columns[i] * base_columns[j], count)
+            base_normal[:, i, j] = base_normal[:, j, i] = np.bincount(
+                lab, wt * base_columns[i] * base_columns[j], count)
     sum_wyy = np.bincount(lab, wt * y * y, count)
 
     def chi2_of(shape_col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1162,8 +1162,8 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
     flat_chi2, _ = chi2_of((np.arange(lab.size) < n_patch).astype(np.float64))
     dof = np.maximum(np.bincount(lab, minlength=count) - 7, 1).astype(np.float64)
     hill = np.zeros(n_labels, bool)
-    hill[used] = ((best_sigma >= _HILL_MIN_SIGMA_PX) & (best_sigma < _HILL_SIGMAS_PX[-1]) & (sign * best_height > 0)
-                  & (best_chi2 <= dof + _HILL_CHI2_SDS * np.sqrt(2.0 * dof))
+    hill[used] = ((best_sigma >= _HILL_MIN_SIGMA_PX) & (best_sigma < _HILL_SIGMAS_PX[-1])
+                  & (sign * best_height > 0) & (best_chi2 <= dof + _HILL_CHI2_SDS * np.sqrt(2.0 * dof))
                   & (best_chi2 + _HILL_MIN_CHI2_GAIN <= flat_chi2))
     return hill
 
@@ -1213,9 +1213,14 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
     A hit on the sensor lands in one colour's pixels, so a pulse in a subset of channels is kept
     however its ring looks: by shape alone a weak Gaussian pulse whose growth stopped early
     looks like a blob, and dev and held-out pulse frames had 20-sigma flat pulses and tracks on
-    anatomy edges dropped without the colour test. Single-channel frames give no such evidence
-    and get no guard. Other pulses are left out of the ring and the background. ``scratch``
-    (uint8, zero) is used and left zero.
+    anatomy edges dropped without the colour test. Single-channel frames (``channels`` None:
+    grey) give no such evidence and get no ring rule.
+
+    A patch the growth has climbed down to the noise (its ring no longer stands up) is also
+    dropped when it is a Gaussian hill at least :data:`_HILL_MIN_SIGMA_PX` wide
+    (:func:`_gaussian_hills`: a small dense object blurred by the screen); on V it still has to
+    have the scintillator's colour, on grey frames the shape is all the evidence. Other pulses
+    are left out of the ring and the background. ``scratch`` (uint8, zero) is used and left zero.
     """
     import cv2
 
@@ -1319,7 +1324,8 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
         out_lab, out_pix = _box_outline((h, w), sub_label[fit_px], rows[fit_px], cols[fit_px],
                                         _HILL_BACKGROUND_PX, count)
         out_keep = ~_in_sorted(out_pix, pulse_set)
-        hill &= _gaussian_hills(values, w, np.nan_to_num(sign), background, model, (sub_label[fit_px], sub[fit_px]),
+        hill &= _gaussian_hills(values, w, np.nan_to_num(sign), background, model,
+                                (sub_label[fit_px], sub[fit_px]),
                                 (np.concatenate([near_lab, out_lab[out_keep]]),
                                  np.concatenate([near_pix, out_pix[out_keep]])))
     if channels is None:  # one channel: the shape is all the evidence, and a ring alone drops pulses
