@@ -12,7 +12,7 @@ Two generators, neither the unit test's, put such hills into the pulse generator
 
 A hill pixel is one the hill raises by 2 noise sigmas or more. Reported: the share of hill pixels
 flagged and the pixels flagged elsewhere, for the shipped stage and for the same stage with the
-hill test off (``_HILL_MIN_SIGMA_PX`` infinite: the version before session 33), side by side.
+hill test off (``min_object_sigma_px = 4``: the version before session 33), side by side.
 
 Run: ``.venv/bin/python benchmarks/eval_impulse_hills.py [--seeds dev|heldout] [--kind grey|tinted]``
 """
@@ -32,6 +32,8 @@ import impulse_pulses as gen  # noqa: E402
 SEEDS = {"dev": (11, 12, 13, 14), "heldout": (41, 42, 43, 44)}
 GAUSSIAN_SIGMAS_PX = (1.2, 1.5, 2.0, 2.5, 3.0)
 HEIGHTS_SIGMA = (8, 12, 16, 24, 40, 80)
+#: ``min_object_sigma_px`` that turns the hill test off (no fitted width reaches it).
+HILL_TEST_OFF_PX = 4.0
 
 
 def _bead_profile(rng) -> np.ndarray:
@@ -75,16 +77,11 @@ def hill_frame(seed: int, generator: str, tint) -> tuple[np.ndarray, np.ndarray]
 
 
 def flagged(frame: np.ndarray, hills: np.ndarray, hill_test: bool) -> tuple[int, int]:
-    """(hill pixels flagged, other pixels flagged) by the stage's defaults."""
-    from napari_dslrxr.core.stages.impulse import detection, remove_impulses
+    """(hill pixels flagged, other pixels flagged) by the stage's defaults, the hill test on or off."""
+    from napari_dslrxr.core.stages.impulse import ImpulseParams, remove_impulses
 
-    saved = detection._HILL_MIN_SIGMA_PX
-    if not hill_test:
-        detection._HILL_MIN_SIGMA_PX = np.inf
-    try:
-        mask = remove_impulses(frame).any_mask()
-    finally:
-        detection._HILL_MIN_SIGMA_PX = saved
+    params = ImpulseParams() if hill_test else ImpulseParams(min_object_sigma_px=HILL_TEST_OFF_PX)
+    mask = remove_impulses(frame, params).any_mask()
     return int(np.count_nonzero(mask & hills)), int(np.count_nonzero(mask & ~hills))
 
 

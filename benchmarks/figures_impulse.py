@@ -150,16 +150,11 @@ def _hills_figure() -> None:
     without the hill test (the version before session 33) as baseline."""
     import eval_impulse_hills as hills
 
-    from napari_dslrxr.core.stages.impulse import detection, remove_impulses
+    from napari_dslrxr.core.stages.impulse import ImpulseParams, remove_impulses
 
     frame, mask = hills.hill_frame(12, "beads", gen.TINTS["grey"])
     ours = remove_impulses(frame)
-    saved = detection._HILL_MIN_SIGMA_PX
-    detection._HILL_MIN_SIGMA_PX = np.inf
-    try:
-        before = remove_impulses(frame)
-    finally:
-        detection._HILL_MIN_SIGMA_PX = saved
+    before = remove_impulses(frame, ImpulseParams(min_object_sigma_px=hills.HILL_TEST_OFF_PX))
     crop = (slice(0, 250), slice(0, 300))
     _panel(DOCS / "impulse_hills.png",
            [frame[crop], ours.image[crop], before.image[crop], ours.masks["grey"][crop], before.masks["grey"][crop]],

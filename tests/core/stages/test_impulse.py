@@ -771,3 +771,6 @@ def test_small_dense_objects_blurred_by_the_screen_are_not_pulses(rng, tint):
     hill_px, hit_px = hills > 2 * noise, hits > 3 * noise
     assert np.count_nonzero(mask & hill_px) < 0.05 * np.count_nonzero(hill_px)
     assert np.count_nonzero(mask & hit_px) >= 0.9 * np.count_nonzero(hit_px)
+    # the knob: at its widest the test is off, and the hills are flattened as before
+    off = remove_impulses(image, ImpulseParams(min_object_sigma_px=4.0)).any_mask()
+    assert np.count_nonzero(off & hill_px) > 0.4 * np.count_nonzero(hill_px)

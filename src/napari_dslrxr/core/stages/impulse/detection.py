@@ -314,7 +314,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
                                fast_residual, near_scratch, check=steps.check, strong_rims=faint_pulses)
         if photon_counting and faint_pulses and residual_weight is None and (
                 channels is not None or texture_sides == "two_signed"):  # V, grey
-            pulses = _without_broad_patches(x, pulses, model, scratch, channels)
+            pulses = _without_broad_patches(x, pulses, model, scratch, channels, params.min_object_sigma_px)
         if pulses.size == 0:
             break
         rows, cols = np.divmod(pulses, w)
@@ -1044,11 +1044,10 @@ _TINT_TOLERANCE = 0.05
 
 #: A grown patch is also broad structure when its excess, with the 2 px around it, is a smooth
 #: Gaussian hill (a small dense object, a calcification or a marker, blurred by the screen) at
-#: least this wide, px (sigma): the growth climbs such a hill down to the noise, so its ring no
-#: longer stands up, and the replacement would flatten it. The independent pulses' Gaussians
-#: have sigma 0.5-1.1 px and end within their footprints; flat pulses and clusters end abruptly
-#: and fit no Gaussian that also fits their ring.
-_HILL_MIN_SIGMA_PX = 1.4
+#: least ``ImpulseParams.min_object_sigma_px`` wide: the growth climbs such a hill down to the
+#: noise, so its ring no longer stands up, and the replacement would flatten it. The independent
+#: pulses' Gaussians have sigma 0.5-1.1 px and end within their footprints; flat pulses and
+#: clusters end abruptly and fit no Gaussian that also fits their ring.
 #: Gaussian widths tried for the hill (sigma, px); a best fit at the widest is no hill (a flat top).
 _HILL_SIGMAS_PX = np.arange(0.5, 4.01, 0.1)
 #: The hill fits when its chi-square is within this many standard deviations of its degrees of
@@ -1097,9 +1096,9 @@ def _box_outline(shape, labels: np.ndarray, rows: np.ndarray, cols: np.ndarray, 
 
 def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background: np.ndarray,
                     model: _NoiseModel, patch: tuple[np.ndarray, np.ndarray],
-                    around: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+                    around: tuple[np.ndarray, np.ndarray], min_sigma_px: float) -> np.ndarray:
     """Per label (``sign``'s length), whether the patch, with the pixels ``around`` it, is a
-    Gaussian hill of sigma :data:`_HILL_MIN_SIGMA_PX` or wider on a sloping background.
+    Gaussian hill of sigma ``min_sigma_px`` or wider on a sloping background.
 
     ``patch``, ``around``: (labels, flat indices) of their pixels in ``values`` (the channel,
     flat, ``width`` px per row); ``sign``: +1 for a bright patch, -1 for a dark one;
@@ -1162,7 +1161,7 @@ def _gaussian_hills(values: np.ndarray, width: int, sign: np.ndarray, background
     flat_chi2, _ = chi2_of((np.arange(lab.size) < n_patch).astype(np.float64))
     dof = np.maximum(np.bincount(lab, minlength=count) - 7, 1).astype(np.float64)
     hill = np.zeros(n_labels, bool)
-    hill[used] = ((best_sigma >= _HILL_MIN_SIGMA_PX) & (best_sigma < _HILL_SIGMAS_PX[-1])
+    hill[used] = ((best_sigma >= min_sigma_px) & (best_sigma < _HILL_SIGMAS_PX[-1])
                   & (sign * best_height > 0) & (best_chi2 <= dof + _HILL_CHI2_SDS * np.sqrt(2.0 * dof))
                   & (best_chi2 + _HILL_MIN_CHI2_GAIN <= flat_chi2))
     return hill
@@ -1198,7 +1197,8 @@ def _scintillator_tint(channels: np.ndarray, block_px: int = 8) -> np.ndarray:
 
 
 def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel,
-                           scratch: np.ndarray, channels: np.ndarray) -> np.ndarray:
+                           scratch: np.ndarray, channels: np.ndarray | None,
+                           min_object_sigma_px: float) -> np.ndarray:
     """``pulses`` (flat indices) without the patches whose excess goes on beyond them.
 
     The growth climbs down a smooth blob (anatomy blurred by the screen, 6-8 px across and
@@ -1217,7 +1217,7 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
     grey) give no such evidence and get no ring rule.
 
     A patch the growth has climbed down to the noise (its ring no longer stands up) is also
-    dropped when it is a Gaussian hill at least :data:`_HILL_MIN_SIGMA_PX` wide
+    dropped when it is a Gaussian hill at least ``min_object_sigma_px`` wide
     (:func:`_gaussian_hills`: a small dense object blurred by the screen); on V it still has to
     have the scintillator's colour, on grey frames the shape is all the evidence. Other pulses
     are left out of the ring and the background. ``scratch`` (uint8, zero) is used and left zero.
@@ -1327,7 +1327,7 @@ def _without_broad_patches(x: np.ndarray, pulses: np.ndarray, model: _NoiseModel
         hill &= _gaussian_hills(values, w, np.nan_to_num(sign), background, model,
                                 (sub_label[fit_px], sub[fit_px]),
                                 (np.concatenate([near_lab, out_lab[out_keep]]),
-                                 np.concatenate([near_pix, out_pix[out_keep]])))
+                                 np.concatenate([near_pix, out_pix[out_keep]])), min_object_sigma_px)
     if channels is None:  # one channel: the shape is all the evidence, and a ring alone drops pulses
         return pulses[~hill[label]] if hill.any() else pulses
     broad |= hill

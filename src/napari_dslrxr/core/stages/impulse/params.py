@@ -58,6 +58,11 @@ class ImpulseParams:
         rims are accepted at a lower significance (about 3 sigma at 0.5).
     posterior_threshold : float
         A pixel is a pulse when its posterior pulse probability exceeds this (0 < t < 1).
+    min_object_sigma_px : float
+        Grey and V channels: a compact detected patch that is a smooth Gaussian hill at least
+        this wide (sigma, px) on its background, like a small dense object (a calcification, a
+        marker bead) blurred by the screen, is structure and is left as it is (0.5 to 4 px;
+        about the screen's blur; 4 turns the test off). Pulses from sensor hits are sharper.
     min_saturation : float
         Pixels with saturation below this (0 to 1), or next to such pixels (within the
         detection window), are left out of hue filtering: their hue is undefined. The
@@ -98,6 +103,10 @@ class ImpulseParams:
     posterior_threshold: float = field(default=0.5, metadata={
         "help": "a pixel is a pulse when its posterior pulse probability exceeds this",
         "unit": "probability", "min": 0.0, "max": 1.0, "open_range": True})
+    min_object_sigma_px: float = field(default=1.4, metadata={
+        "help": "a compact patch that is a Gaussian hill at least this wide (sigma) on its background, like a "
+                "small dense object blurred by the screen, is left as structure (4 turns the test off)",
+        "unit": "px", "min": 0.5, "max": 4.0})
     min_saturation: float = field(default=0.05, metadata={
         "help": "pixels with saturation below this are left out of hue filtering", "unit": "fraction",
         "min": 0.0, "max": 1.0})
