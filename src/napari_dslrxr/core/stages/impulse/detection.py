@@ -312,8 +312,7 @@ def _clean_channel(x: np.ndarray, *, passes: int, params: ImpulseParams, photon_
         steps.advance()
         pulses = _grow_patches(x, seeds, model, params, valid_flat, circular, residual_weight, scratch,
                                fast_residual, near_scratch, check=steps.check, strong_rims=faint_pulses)
-        if photon_counting and faint_pulses and residual_weight is None and (
-                channels is not None or texture_sides == "two_signed"):  # V, grey
+        if photon_counting and faint_pulses and residual_weight is None:  # grey and V (CFA: no faint rims)
             pulses = _without_broad_patches(x, pulses, model, scratch, channels, params.min_object_sigma_px)
         if pulses.size == 0:
             break
@@ -1042,12 +1041,13 @@ _TINT_CHI2 = 13.8
 _TINT_TOLERANCE = 0.05
 
 
-#: A grown patch is also broad structure when its excess, with the 2 px around it, is a smooth
-#: Gaussian hill (a small dense object, a calcification or a marker, blurred by the screen) at
-#: least ``ImpulseParams.min_object_sigma_px`` wide: the growth climbs such a hill down to the
-#: noise, so its ring no longer stands up, and the replacement would flatten it. The independent
-#: pulses' Gaussians have sigma 0.5-1.1 px and end within their footprints; flat pulses and
-#: clusters end abruptly and fit no Gaussian that also fits their ring.
+# A grown patch is also broad structure when its excess, with the 2 px around it, is a smooth
+# Gaussian hill (a small dense object, a calcification or a marker, blurred by the screen) at
+# least ``ImpulseParams.min_object_sigma_px`` wide: the growth climbs such a hill down to the
+# noise, so its ring no longer stands up, and the replacement would flatten it. The independent
+# pulses' Gaussians have sigma 0.5-1.1 px and end within their footprints; flat pulses and
+# clusters end abruptly and fit no Gaussian that also fits their ring.
+
 #: Gaussian widths tried for the hill (sigma, px); a best fit at the widest is no hill (a flat top).
 _HILL_SIGMAS_PX = np.arange(0.5, 4.01, 0.1)
 #: The hill fits when its chi-square is within this many standard deviations of its degrees of
